@@ -1,0 +1,265 @@
+"""The abstract Lie group interface: the minimum a subclass writes, and everything derived from it.
+
+A group is a small, stateless object (``SO3()``, ``Euclidean(3)``, ``Product(SO3(), Euclidean(3))``)
+whose methods take and return plain ``torch.Tensor`` s. An element has the shape
+``(*batch, *element_shape)``, a tangent vector ``(*batch, tangent_dim)`` and an embedded element
+``(*batch, embedding_dim)``. Batch dimensions broadcast like torch's.
+
+The minimum a subclass writes (manif's "minimum API"):
+
+* ``element_shape``, ``tangent_dim``, ``embedding_dim``
+* ``identity``, ``compose``, ``inverse``, ``exp``, ``log``
+* ``embed`` (the paper's map ``pi`` into ``R^n``) and ``unembed`` (its inverse on the image)
+* ``membership_error`` (how far a tensor is from the group; 0 on it)
+
+Derived once here, overridable for speed: ``rplus``, ``rminus``, ``between``, ``adjoint``,
+``distance``, ``random``, ``check_member``, ``from_embedding``.
+
+Perturbations are on the **right**, as in manif and Theseus: ``rplus(x, v) = x · exp(v)`` is the
+observer's update, ``rminus(y, x) = log(x^-1 · y)`` so that ``rplus(x, rminus(y, x)) == y``.
+"""
+
+from __future__ import annotations
+
+import abc
+from collections.abc import Sequence
+
+import torch
+
+__all__ = ["LieGroup", "MatrixLieGroup", "GroupMembershipError"]
+
+BatchShape = Sequence[int] | torch.Size
+
+
+class GroupMembershipError(ValueError):
+    """A tensor that was required to be a group element is not one (or holds NaN/Inf)."""
+
+
+def _default_atol(dtype: torch.dtype) -> float:
+    # float32 chains of many updates drift to ~1e-5; float64 stays near 1e-14.
+    return 1e-9 if dtype == torch.float64 else 1e-4
+
+
+class LieGroup(abc.ABC):
+    """Abstract base of every group. See the module docstring for the contract."""
+
+    #: Shape of one element, e.g. ``(3, 3)`` for SO(3) as rotation matrices.
+    element_shape: tuple[int, ...]
+    #: Dimension of the Lie algebra (the tangent space at the identity).
+    tangent_dim: int
+    #: Dimension ``n`` of the Euclidean space the group is embedded in by ``embed``.
+    embedding_dim: int
+    #: Slices of the tangent vector whose norm is a rotation angle (used by ``groups.testing``
+    #: to place adversarial angles such as 0 and pi, and to know where ``log`` is injective).
+    #: Empty for vector spaces.
+    angle_slices: tuple[slice, ...] = ()
+
+    # ------------------------------------------------------------------ minimum API
+
+    @abc.abstractmethod
+    def identity(
+        self,
+        batch_shape: BatchShape = (),
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> torch.Tensor:
+        """The identity element, shape ``(*batch_shape, *element_shape)``."""
+
+    @abc.abstractmethod
+    def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """The group product ``x · y``; batch dimensions broadcast."""
+
+    @abc.abstractmethod
+    def inverse(self, x: torch.Tensor) -> torch.Tensor:
+        """The inverse ``x^-1``."""
+
+    @abc.abstractmethod
+    def exp(self, v: torch.Tensor) -> torch.Tensor:
+        """The exponential map, ``(*batch, tangent_dim) -> (*batch, *element_shape)``."""
+
+    @abc.abstractmethod
+    def log(self, x: torch.Tensor) -> torch.Tensor:
+        """The logarithm (inverse of ``exp`` inside its injectivity radius)."""
+
+    @abc.abstractmethod
+    def embed(self, x: torch.Tensor) -> torch.Tensor:
+        """The embedding ``pi``, ``(*batch, *element_shape) -> (*batch, embedding_dim)``."""
+
+    @abc.abstractmethod
+    def unembed(self, z: torch.Tensor) -> torch.Tensor:
+        """The inverse of ``embed`` on its image, without a membership check.
+
+        Use :meth:`from_embedding` for data from outside: it checks membership.
+        """
+
+    @abc.abstractmethod
+    def membership_error(self, x: torch.Tensor) -> torch.Tensor:
+        """How far ``x`` is from the group, shape ``(*batch,)``; 0 on the group, NaN for NaN input."""
+
+    # ------------------------------------------------------------------ derived API
+
+    def rplus(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """Right perturbation ``x · exp(v)`` (the observer's update)."""
+        return self.compose(x, self.exp(v))
+
+    def rminus(self, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``log(x^-1 · y)``, the tangent vector ``v`` with ``rplus(x, v) == y``."""
+        return self.log(self.between(x, y))
+
+    def between(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """``x^-1 · y``, the relative element from ``x`` to ``y``."""
+        return self.compose(self.inverse(x), y)
+
+    def distance(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """The geodesic-like distance ``||rminus(y, x)||``, shape ``(*batch,)``."""
+        return torch.linalg.vector_norm(self.rminus(y, x), dim=-1)
+
+    def adjoint(self, x: torch.Tensor) -> torch.Tensor:
+        """The adjoint matrix ``Ad_x``, ``(*batch, tangent_dim, tangent_dim)``.
+
+        Defined by ``x · exp(v) · x^-1 = exp(Ad_x v)``. The generic version differentiates
+        ``v -> log(x · exp(v) · x^-1)`` at ``v = 0`` with forward-mode autograd, one column per
+        tangent direction; subclasses override it with a closed form.
+        """
+        self._check_element(x, "adjoint")
+        batch = x.shape[: x.dim() - len(self.element_shape)]
+        x_inv = self.inverse(x)
+
+        def conj(v: torch.Tensor) -> torch.Tensor:
+            return self.log(self.compose(self.compose(x, self.exp(v)), x_inv))
+
+        zero = torch.zeros(*batch, self.tangent_dim, dtype=x.dtype, device=x.device)
+        eye = torch.eye(self.tangent_dim, dtype=x.dtype, device=x.device)
+        cols = [
+            torch.func.jvp(conj, (zero,), (eye[i].expand_as(zero),))[1]
+            for i in range(self.tangent_dim)
+        ]
+        return torch.stack(cols, dim=-1)
+
+    def random(
+        self,
+        batch_shape: BatchShape = (),
+        generator: torch.Generator | None = None,
+        dtype: torch.dtype = torch.float32,
+        device: torch.device | str | None = None,
+    ) -> torch.Tensor:
+        """A random element: ``exp`` of a standard normal tangent vector (SO(n) overrides with Haar)."""
+        v = torch.randn(
+            *batch_shape, self.tangent_dim, generator=generator, dtype=dtype, device=device
+        )
+        return self.exp(v)
+
+    def check_member(self, x: torch.Tensor, atol: float | None = None) -> torch.Tensor:
+        """Raises :class:`GroupMembershipError` unless every element of ``x`` is on the group.
+
+        ``atol`` defaults to 1e-4 for float32 and 1e-9 for float64. Returns ``x`` unchanged.
+        """
+        self._check_element(x, "check_member")
+        if not bool(torch.isfinite(x).all()):
+            raise GroupMembershipError(
+                f"{self.name}: the element holds NaN or Inf; a group element must be finite."
+            )
+        tol = _default_atol(x.dtype) if atol is None else atol
+        err = self.membership_error(x)
+        worst = float(err.max()) if err.numel() else 0.0
+        if not worst <= tol:
+            raise GroupMembershipError(
+                f"{self.name}: {int((err > tol).sum())} of {err.numel()} element(s) are not on the "
+                f"group (largest membership error {worst:.3g} > atol {tol:.3g}). Pass group "
+                f"elements (for rotations: orthonormal with det +1), or raise atol if the "
+                f"data were rounded."
+            )
+        return x
+
+    def from_embedding(self, z: torch.Tensor, atol: float | None = None) -> torch.Tensor:
+        """The inverse of ``embed``, checked: raises :class:`GroupMembershipError` off the group."""
+        self._check_shape(z, (self.embedding_dim,), "from_embedding", "an embedded element")
+        return self.check_member(self.unembed(z), atol=atol)
+
+    # ------------------------------------------------------------------ helpers
+
+    @property
+    def name(self) -> str:
+        return type(self).__name__
+
+    def __repr__(self) -> str:
+        return f"{self.name}()"
+
+    def __eq__(self, other: object) -> bool:
+        return type(self) is type(other) and repr(self) == repr(other)
+
+    def __hash__(self) -> int:
+        return hash(repr(self))
+
+    def batch_shape(self, x: torch.Tensor) -> torch.Size:
+        """The batch shape of an element ``x``."""
+        return x.shape[: x.dim() - len(self.element_shape)]
+
+    def _check_shape(
+        self, t: torch.Tensor, trailing: tuple[int, ...], where: str, what: str
+    ) -> None:
+        if not isinstance(t, torch.Tensor):
+            raise TypeError(
+                f"{self.name}.{where} expects {what} as a torch.Tensor, got {type(t).__name__}."
+            )
+        if not (t.is_floating_point()):
+            raise TypeError(
+                f"{self.name}.{where} expects a floating-point tensor (float32 or float64), got "
+                f"{t.dtype}; convert it first, e.g. with .double()."
+            )
+        n = len(trailing)
+        if t.dim() < n or tuple(t.shape[t.dim() - n :]) != trailing:
+            want = ", ".join(["*batch", *map(str, trailing)])
+            raise ValueError(
+                f"{self.name}.{where} expects {what} of shape ({want}), got {tuple(t.shape)}."
+            )
+
+    def _check_tangent(self, v: torch.Tensor, where: str) -> None:
+        self._check_shape(v, (self.tangent_dim,), where, "a tangent vector")
+
+    def _check_element(self, x: torch.Tensor, where: str) -> None:
+        self._check_shape(x, tuple(self.element_shape), where, "a group element")
+
+
+class MatrixLieGroup(LieGroup):
+    """A group of ``(d, d)`` matrices: compose is the matrix product, identity the unit matrix.
+
+    A subclass adds ``hat`` (``R^tangent_dim -> `` the Lie algebra as ``d x d`` matrices) and
+    ``vee`` (its inverse), and gets ``compose``, ``identity``, a generic ``inverse`` and
+    ``adjoint(x) v = vee(x hat(v) x^-1)``.
+    """
+
+    #: Side ``d`` of the square matrices.
+    matrix_dim: int
+
+    @property
+    def element_shape(self) -> tuple[int, ...]:  # type: ignore[override]
+        return (self.matrix_dim, self.matrix_dim)
+
+    @abc.abstractmethod
+    def hat(self, v: torch.Tensor) -> torch.Tensor:
+        """``(*batch, tangent_dim) -> (*batch, d, d)``, the Lie algebra element of ``v``."""
+
+    @abc.abstractmethod
+    def vee(self, m: torch.Tensor) -> torch.Tensor:
+        """``(*batch, d, d) -> (*batch, tangent_dim)``, the inverse of ``hat``."""
+
+    def identity(self, batch_shape=(), dtype=torch.float32, device=None) -> torch.Tensor:
+        eye = torch.eye(self.matrix_dim, dtype=dtype, device=device)
+        return eye.expand(*batch_shape, self.matrix_dim, self.matrix_dim).clone()
+
+    def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        self._check_element(x, "compose")
+        self._check_element(y, "compose")
+        return x @ y
+
+    def inverse(self, x: torch.Tensor) -> torch.Tensor:
+        self._check_element(x, "inverse")
+        return torch.linalg.inv(x)
+
+    def adjoint(self, x: torch.Tensor) -> torch.Tensor:
+        self._check_element(x, "adjoint")
+        eye = torch.eye(self.tangent_dim, dtype=x.dtype, device=x.device)
+        basis = self.hat(eye)  # (k, d, d)
+        conj = x.unsqueeze(-3) @ basis @ self.inverse(x).unsqueeze(-3)  # (*batch, k, d, d)
+        return self.vee(conj).transpose(-1, -2)
