@@ -9,6 +9,10 @@ subclassing :class:`LieGroup` (or :class:`MatrixLieGroup`) and check it with
 from .base import GroupMembershipError, LieGroup, MatrixLieGroup
 from .euclidean import Euclidean
 from .product import Product
+from .se2 import SE2
+from .se3 import SE3
+from .se23 import SE23
+from .so2 import SO2
 from .so3 import SO3
 
 __all__ = [
@@ -17,5 +21,9 @@ __all__ = [
     "GroupMembershipError",
     "Euclidean",
     "Product",
+    "SO2",
     "SO3",
+    "SE2",
+    "SE3",
+    "SE23",
 ]
