@@ -1,0 +1,342 @@
+"""Trajectory datasets: true states, measurements, inputs and metadata, stored without pickle.
+
+A :class:`TrajectoryDataset` holds ``N`` sequences of ``T`` steps of a system on a Lie group:
+
+* ``states``       ``(N, T+1, *group.element_shape)``: the true ``x_0 .. x_T``;
+* ``measurements`` ``(N, T, measurement_dim)``: ``measurements[:, k]`` is ``y_{k+1}``;
+* ``inputs``       ``(N, T, input_dim)``: ``inputs[:, k]`` is ``u_k`` (``input_dim`` may be 0);
+* ``meta``         a JSON-able dict: system, group, sigma, seed, the resolved config, its hash,
+  the train/val/test ``splits`` as ``{name: [start, stop]}`` ranges of sequences.
+
+On disk (``save_dataset`` / ``load_dataset``) a dataset is one ``.npz`` file read with
+``allow_pickle=False``: the float64 arrays ``states``, ``measurements``, ``inputs``, the int64
+scalar ``format_version`` and ``meta`` as a JSON string. Files are written to a temporary name
+and renamed, so an interrupted write never leaves a half file; the zip entries carry a fixed
+timestamp, so the same dataset always gives the same bytes.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+import zipfile
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from groups import GroupMembershipError, LieGroup
+
+__all__ = [
+    "FORMAT_VERSION",
+    "DatasetError",
+    "TrajectoryDataset",
+    "save_dataset",
+    "load_dataset",
+    "split_ranges",
+    "check_positive_int",
+    "check_sigma",
+]
+
+#: Version of the on-disk layout; ``load_dataset`` refuses any other.
+FORMAT_VERSION = 1
+
+_ARRAYS = ("states", "measurements", "inputs")
+_ZIP_DATE = (1980, 1, 1, 0, 0, 0)  # fixed timestamp: identical datasets give identical bytes
+_CHECK_CHUNK = 1 << 18  # values or group elements checked at once (bounds the temporaries)
+
+
+class DatasetError(ValueError):
+    """A dataset (in memory or on disk) or a request for one is malformed."""
+
+
+# ---------------------------------------------------------------------- argument checks
+
+
+def _all_finite(t: torch.Tensor) -> bool:
+    """Whether every value is finite: ``sum(x * 0) == 0`` exactly then, chunk by chunk (fast)."""
+    flat = t.reshape(-1)
+    return all(float((c * 0).sum()) == 0.0 for c in flat.split(_CHECK_CHUNK))
+
+
+def check_positive_int(name: str, value: object) -> int:
+    """``value`` as an int, or a :class:`DatasetError` unless it is a positive integer."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise DatasetError(f"{name} must be a positive integer, got {value!r}.")
+    return int(value)
+
+
+def check_sigma(sigma: object) -> float:
+    """``sigma`` as a float, or a :class:`DatasetError` unless it is finite and ``>= 0``."""
+    if isinstance(sigma, bool) or not isinstance(sigma, (int, float, np.floating)):
+        raise DatasetError(f"sigma must be a number >= 0, got {sigma!r}.")
+    if not math.isfinite(sigma) or sigma < 0:
+        raise DatasetError(
+            f"sigma is the standard deviation of the measurement noise and must be finite and "
+            f">= 0 (0 for noise-free data), got {sigma!r}."
+        )
+    return float(sigma)
+
+
+def split_ranges(num_sequences: int, fractions: Mapping[str, float]) -> dict[str, list[int]]:
+    """Contiguous ``{name: [start, stop]}`` ranges of sequences for split ``fractions``.
+
+    The fractions must be positive and sum to 1 (to 1e-9); boundaries are
+    ``round(cumulative fraction * N)``, so 80/10/10 of 20000 gives exactly 16000/2000/2000.
+    Every split must get at least one sequence.
+    """
+    n = check_positive_int("num_sequences", num_sequences)
+    if not fractions:
+        raise DatasetError(
+            "splits must name at least one split, e.g. {train: 0.8, val: 0.1, test: 0.1}."
+        )
+    for name, frac in fractions.items():
+        if not isinstance(name, str) or not name:
+            raise DatasetError(f"split names must be non-empty strings, got {name!r}.")
+        if isinstance(frac, bool) or not isinstance(frac, (int, float)) or not frac > 0:
+            raise DatasetError(f"split {name!r} has fraction {frac!r}; fractions must be > 0.")
+    total = math.fsum(float(f) for f in fractions.values())
+    if abs(total - 1.0) > 1e-9:
+        raise DatasetError(
+            f"split fractions {dict(fractions)} sum to {total:.12g}, not 1; make them add up "
+            "to 1, e.g. {train: 0.8, val: 0.1, test: 0.1}."
+        )
+    out, acc, start = {}, 0.0, 0
+    for i, (name, frac) in enumerate(fractions.items()):
+        acc += float(frac)
+        stop = n if i == len(fractions) - 1 else int(round(acc * n))
+        if stop <= start:
+            raise DatasetError(
+                f"split {name!r} gets no sequence out of {n}; use more sequences or fewer splits."
+            )
+        out[name] = [start, stop]
+        start = stop
+    return out
+
+
+# ---------------------------------------------------------------------- the dataset
+
+
+@dataclass(eq=False)
+class TrajectoryDataset:
+    """``N`` trajectories of a system on a Lie group; see the module docstring for the shapes."""
+
+    states: torch.Tensor
+    measurements: torch.Tensor
+    inputs: torch.Tensor
+    meta: dict = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in _ARRAYS:
+            t = getattr(self, name)
+            if not isinstance(t, torch.Tensor) or not t.is_floating_point():
+                raise DatasetError(f"{name} must be a floating-point torch.Tensor, got {t!r:.80}.")
+        s, m, u = self.states, self.measurements, self.inputs
+        if s.dim() < 3 or m.dim() != 3 or u.dim() != 3:
+            raise DatasetError(
+                "expected states (N, T+1, *element_shape), measurements (N, T, measurement_dim) "
+                f"and inputs (N, T, input_dim); got {tuple(s.shape)}, {tuple(m.shape)}, "
+                f"{tuple(u.shape)}."
+            )
+        n, t = m.shape[:2]
+        if s.shape[:2] != (n, t + 1) or u.shape[:2] != (n, t):
+            raise DatasetError(
+                f"inconsistent sizes: states {tuple(s.shape)} must be (N, T+1, ...) and inputs "
+                f"{tuple(u.shape)} (N, T, ...) for measurements {tuple(m.shape)} (N={n}, T={t})."
+            )
+        if not isinstance(self.meta, dict):
+            raise DatasetError(f"meta must be a dict, got {type(self.meta).__name__}.")
+
+    # ------------------------------------------------------------------ sizes and indexing
+
+    def __len__(self) -> int:
+        return self.measurements.shape[0]
+
+    @property
+    def length(self) -> int:
+        """``T``, the number of steps (measurements) per sequence."""
+        return self.measurements.shape[1]
+
+    def __getitem__(self, idx) -> TrajectoryDataset:
+        """The sequences ``idx`` (an int keeps the sequence dimension: ``ds[3]`` has ``N = 1``).
+
+        ``idx`` may be an int, a slice, or a 1-D index/boolean tensor or list. The subset's
+        ``meta`` is the parent's without ``splits`` (those ranges refer to the parent).
+        """
+        if isinstance(idx, (int, np.integer)):
+            n = len(self)
+            if not -n <= idx < n:
+                raise IndexError(f"sequence {idx} out of range for a dataset of {n} sequences.")
+            idx = slice(int(idx) % n, int(idx) % n + 1)
+        meta = {k: v for k, v in self.meta.items() if k != "splits"}
+        return TrajectoryDataset(
+            self.states[idx], self.measurements[idx], self.inputs[idx], meta
+        )
+
+    def split(self, name: str) -> TrajectoryDataset:
+        """The split ``name`` (``train``, ``val``, ``test``, ...) recorded in ``meta['splits']``."""
+        ranges = self.meta.get("splits") or {}
+        if name not in ranges:
+            raise KeyError(f"no split {name!r} in this dataset; its splits: {sorted(ranges)}.")
+        start, stop = ranges[name]
+        sub = self[start:stop]
+        sub.meta["split"] = name
+        return sub
+
+    def splits(self) -> dict[str, TrajectoryDataset]:
+        """Every split by name, in the recorded order (the whole dataset as ``all`` if none)."""
+        names = list(self.meta.get("splits") or {})
+        if not names:
+            return {"all": self}
+        return {name: self.split(name) for name in names}
+
+    def to(self, dtype: torch.dtype | None = None, device=None) -> TrajectoryDataset:
+        """A copy with every tensor moved to ``dtype`` / ``device`` (``meta`` is shared)."""
+        conv = dict(dtype=dtype, device=device)
+        return TrajectoryDataset(
+            self.states.to(**conv), self.measurements.to(**conv), self.inputs.to(**conv),
+            self.meta,
+        )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, TrajectoryDataset):
+            return NotImplemented
+        return all(
+            getattr(self, a).dtype == getattr(other, a).dtype
+            and torch.equal(getattr(self, a), getattr(other, a))
+            for a in _ARRAYS
+        ) and self.meta == other.meta
+
+    __hash__ = None  # mutable container of tensors
+
+    # ------------------------------------------------------------------ validation
+
+    def validate(
+        self, group: LieGroup | None = None, atol: float | None = None, where: str = "dataset"
+    ) -> TrajectoryDataset:
+        """Raises unless every value is finite and, given ``group``, every state is on it.
+
+        Also checks the states' trailing shape against ``group.element_shape``. Membership is
+        checked with ``group.check_member`` (``atol`` defaults to the group's: 1e-9 in float64)
+        in chunks, so it needs little memory. Returns ``self``.
+        """
+        for name in _ARRAYS:
+            t = getattr(self, name)
+            if not _all_finite(t):
+                bad = int((~torch.isfinite(t)).sum())
+                raise DatasetError(
+                    f"{where}: {name} holds {bad} NaN/Inf value(s); regenerate the data (a "
+                    "corrupt file: delete it) or find where the non-finite values come from."
+                )
+        if group is None:
+            return self
+        want = tuple(group.element_shape)
+        if tuple(self.states.shape[2:]) != want:
+            raise DatasetError(
+                f"{where}: states have element shape {tuple(self.states.shape[2:])}, but "
+                f"{group!r} has elements of shape {want}; load it with the system it was made for."
+            )
+        flat = self.states.reshape(-1, *want)
+        for start in range(0, flat.shape[0], _CHECK_CHUNK):
+            try:
+                group.check_member(flat[start : start + _CHECK_CHUNK], atol=atol)
+            except GroupMembershipError as err:
+                raise GroupMembershipError(f"{where}: states are off the group. {err}") from None
+        return self
+
+
+# ---------------------------------------------------------------------- files
+
+
+def _write_npz(path: Path, arrays: Mapping[str, np.ndarray]) -> None:
+    """An uncompressed ``.npz`` with fixed entry timestamps, written atomically."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            with zipfile.ZipFile(f, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as zf:
+                for name, arr in arrays.items():
+                    info = zipfile.ZipInfo(f"{name}.npy", date_time=_ZIP_DATE)
+                    info.external_attr = 0o644 << 16
+                    with zf.open(info, "w", force_zip64=True) as member:
+                        np.lib.format.write_array(member, arr, allow_pickle=False)
+            f.flush()
+            os.fsync(f.fileno())
+        os.chmod(tmp, 0o644)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def save_dataset(ds: TrajectoryDataset, path: str | os.PathLike) -> None:
+    """Writes ``ds`` to ``path`` (``.npz``, float64, no pickle) atomically: temporary file + rename.
+
+    Raises :class:`DatasetError` for non-finite values or a ``meta`` that is not JSON-able.
+    """
+    if not isinstance(ds, TrajectoryDataset):
+        raise TypeError(f"save_dataset expects a TrajectoryDataset, got {type(ds).__name__}.")
+    ds.validate(where=str(path))
+    try:
+        meta = json.dumps(ds.meta, allow_nan=False)  # insertion order: the splits keep theirs
+    except (TypeError, ValueError) as err:
+        raise DatasetError(f"meta must be JSON-able (str/number/list/dict): {err}") from None
+    arrays = {
+        name: np.ascontiguousarray(getattr(ds, name).detach().cpu().to(torch.float64).numpy())
+        for name in _ARRAYS
+    }
+    arrays["format_version"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
+    arrays["meta"] = np.asarray(meta)
+    _write_npz(Path(path), arrays)
+
+
+def load_dataset(
+    path: str | os.PathLike, group: LieGroup | None = None, atol: float | None = None
+) -> TrajectoryDataset:
+    """Reads a file written by :func:`save_dataset` (``allow_pickle=False``) and validates it.
+
+    Checks, before returning: the format version, the presence and shapes of the arrays,
+    NaN/Inf, and (given ``group``) that every state is on the group. Raises
+    :class:`DatasetError` (or :class:`groups.GroupMembershipError`) naming the file.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no dataset file at {path}; generate it first.")
+    try:
+        with np.load(path, allow_pickle=False) as npz:
+            contents = {k: npz[k] for k in npz.files}
+    except (ValueError, OSError, zipfile.BadZipFile) as err:
+        raise DatasetError(f"{path} is not a readable dataset file ({err}); delete it.") from None
+    missing = [k for k in (*_ARRAYS, "format_version", "meta") if k not in contents]
+    if "format_version" in missing:
+        raise DatasetError(f"{path} has no format_version: not a manifold_nets dataset.")
+    version = contents["format_version"]
+    if version.shape != () or int(version) != FORMAT_VERSION:
+        raise DatasetError(
+            f"{path} has format version {version.tolist()}, this code reads version "
+            f"{FORMAT_VERSION}; delete the file and regenerate it."
+        )
+    if missing:
+        raise DatasetError(f"{path} lacks the arrays {missing}; delete it and regenerate it.")
+    try:
+        meta = json.loads(str(contents["meta"]))
+    except json.JSONDecodeError as err:
+        raise DatasetError(f"{path}: meta is not valid JSON ({err}).") from None
+    tensors = {}
+    for name in _ARRAYS:
+        arr = contents[name]
+        if arr.dtype != np.float64:
+            raise DatasetError(f"{path}: {name} has dtype {arr.dtype}, expected float64.")
+        tensors[name] = torch.from_numpy(arr)
+    try:
+        ds = TrajectoryDataset(**tensors, meta=meta)
+    except DatasetError as err:
+        raise DatasetError(f"{path}: {err}") from None
+    return ds.validate(group, atol=atol, where=str(path))

@@ -1,0 +1,227 @@
+"""What a system is: a discrete-time system on a Lie group, and its simulation into a dataset.
+
+A :class:`System` is the paper's ``x_{k+1} = f(x_k, u_k, mu)``, ``y_k = h(x_k, nu)`` written so
+that both a simulator and a filter can use it::
+
+    x_{k+1} = step(x_k, w_k)                  the dynamics over one step of length dt
+    y_{k+1} = measure(x_{k+1}, w_k, nu_{k+1})  the measurement model, nu ~ N(0, sigma^2 I)
+    u_k     = inputs(w_k)                     the part of w_k an observer is given as input
+
+``w_k`` is the *drive*: everything that moves the state over the step ``k -> k+1`` (for the
+rigid body the true body velocities ``(Omega_k, v_k)``; for a controlled system its control
+input). The drive of step ``k`` may enter the measurement ``y_{k+1}`` (a velocity sensor reads
+the velocity applied over that step). The noise ``nu`` is an explicit argument, so ``measure(x,
+w)`` is the noise-free model ``h(x, w, 0)`` and its derivatives in ``x`` and ``nu`` are what an
+(error-state) Kalman filter needs.
+
+A subclass writes ``sample_initial_state``, ``sample_drive``, ``step``, ``measure`` and ``config``,
+and sets ``group``, ``measurement_dim``, ``input_dim``, ``drive_dim``, ``noise_dim``, ``dt`` and
+``name``. :meth:`System.simulate` then draws, in this order from one ``torch.Generator``, the
+initial states, the drive and the noise, rolls the dynamics out and measures, in float64.
+"""
+
+from __future__ import annotations
+
+import abc
+
+import torch
+
+from groups import LieGroup, Product
+
+from .data import TrajectoryDataset, check_positive_int, check_sigma
+from .progress import progress
+
+__all__ = ["System"]
+
+_DTYPE = torch.float64
+_MEASURE_CHUNK = 1 << 17  # (sequence, step) pairs measured at once: small temporaries are faster
+
+
+class System(abc.ABC):
+    """Abstract discrete-time system on a Lie group; see the module docstring."""
+
+    #: The state's group; states are ``(*batch, *group.element_shape)``.
+    group: LieGroup
+    #: Size ``l`` of a measurement ``y``.
+    measurement_dim: int
+    #: Size ``m`` of the observer's input ``u`` (0 allowed).
+    input_dim: int = 0
+    #: Size of the drive ``w`` that moves the state over a step.
+    drive_dim: int
+    #: Size of the measurement noise vector ``nu``, drawn from ``N(0, sigma^2 I)``.
+    noise_dim: int
+    #: Step length in seconds.
+    dt: float
+    #: Short name, used in file names and metadata.
+    name: str
+
+    # ------------------------------------------------------------------ what a subclass writes
+
+    @abc.abstractmethod
+    def config(self) -> dict:
+        """The parameters that determine the simulated data, as a JSON-able dict.
+
+        The dataset cache hashes it: anything that changes the data must be in it.
+        """
+
+    @abc.abstractmethod
+    def sample_initial_state(self, num_sequences: int, generator: torch.Generator) -> torch.Tensor:
+        """Random initial states ``x_0``, float64, ``(num_sequences, *group.element_shape)``."""
+
+    @abc.abstractmethod
+    def sample_drive(
+        self, num_sequences: int, length: int, generator: torch.Generator
+    ) -> torch.Tensor:
+        """Random drives ``w_0 .. w_{T-1}``, float64, ``(num_sequences, length, drive_dim)``."""
+
+    @abc.abstractmethod
+    def step(self, x: torch.Tensor, drive: torch.Tensor, dt: float | None = None) -> torch.Tensor:
+        """``x_{k+1}`` from ``x_k`` ``(*batch, *element_shape)``, ``w_k`` ``(*batch, drive_dim)``.
+
+        ``dt`` defaults to ``self.dt``.
+        """
+
+    @abc.abstractmethod
+    def measure(
+        self, x: torch.Tensor, drive: torch.Tensor, noise: torch.Tensor | None = None
+    ) -> torch.Tensor:
+        """``y = h(x, w, nu)``, ``(*batch, measurement_dim)``.
+
+        ``x`` is the state the measurement is taken at (``x_{k+1}``), ``drive`` the drive of the
+        step that led there (``w_k``), ``noise`` ``(*batch, noise_dim)`` or ``None`` for none.
+        """
+
+    # ------------------------------------------------------------------ derived, overridable
+
+    def inputs(self, drive: torch.Tensor) -> torch.Tensor:
+        """The observer's inputs ``u_k`` ``(*batch, input_dim)`` from the drive ``w_k``.
+
+        Default: nothing when ``input_dim == 0``, the drive itself when it is all known input.
+        """
+        if self.input_dim == 0:
+            return drive.new_zeros(*drive.shape[:-1], 0)
+        if self.input_dim == self.drive_dim:
+            return drive
+        raise NotImplementedError(
+            f"{type(self).__name__}: input_dim={self.input_dim} differs from drive_dim="
+            f"{self.drive_dim}; override inputs(drive) to say which part of the drive is input."
+        )
+
+    def rollout(
+        self, x0: torch.Tensor, drive: torch.Tensor, show_progress: bool = False
+    ) -> torch.Tensor:
+        """States ``x_0 .. x_T``, ``(N, T+1, *element_shape)``, from ``x0`` and the drives.
+
+        The default loops :meth:`step` over time, vectorised over the sequences. Override it for
+        a faster (e.g. closed-form, precomputed) rollout; it must agree with :meth:`step`.
+        """
+        n, t = drive.shape[:2]
+        states = x0.new_empty(n, t + 1, *self.group.element_shape)
+        states[:, 0] = x0
+        for k in progress(range(t), desc=f"{self.name} steps", enabled=show_progress):
+            states[:, k + 1] = self.step(states[:, k], drive[:, k])
+        return states
+
+    def simulate(
+        self,
+        num_sequences: int,
+        length: int,
+        sigma: float,
+        generator: torch.Generator,
+        *,
+        show_progress: bool = False,
+    ) -> TrajectoryDataset:
+        """``num_sequences`` trajectories of ``length`` steps with measurement noise ``sigma``.
+
+        Draws, in this order from ``generator``: the initial states, the drives, then (only when
+        ``sigma > 0``) the noise ``(N, T, noise_dim)`` times ``sigma``. Everything is float64.
+        The states do not depend on ``sigma``: the same generator seed gives the same
+        trajectories at every noise level. Bad arguments raise before any work.
+        """
+        n = check_positive_int("num_sequences", num_sequences)
+        t = check_positive_int("length", length)
+        sigma = check_sigma(sigma)
+        if not isinstance(generator, torch.Generator):
+            raise TypeError(
+                f"generator must be a torch.Generator (e.g. torch.Generator().manual_seed(0)), "
+                f"got {type(generator).__name__}."
+            )
+        x0 = self.sample_initial_state(n, generator)
+        drive = self.sample_drive(n, t, generator)
+        noise = None
+        if sigma > 0:
+            noise = torch.randn(n, t, self.noise_dim, generator=generator, dtype=_DTYPE)
+            noise.mul_(sigma)
+        states = self.rollout(x0, drive, show_progress=show_progress)
+        want = (n, t + 1, *self.group.element_shape)
+        if tuple(states.shape) != want or states.dtype != _DTYPE:
+            raise ValueError(
+                f"{type(self).__name__}.rollout returned {tuple(states.shape)} {states.dtype}; "
+                f"expected {want} float64."
+            )
+        rows = max(1, _MEASURE_CHUNK // t)
+        if rows >= n:  # one call: no copy
+            measurements = self.measure(states[:, 1:], drive, noise)
+        else:  # in chunks of sequences: small temporaries, no fresh pages to fault in
+            measurements = torch.empty(n, t, self.measurement_dim, dtype=_DTYPE)
+            for s in range(0, n, rows):
+                e = min(n, s + rows)
+                nz = None if noise is None else noise[s:e]
+                measurements[s:e] = self.measure(states[s:e, 1:], drive[s:e], nz)
+        if tuple(measurements.shape) != (n, t, self.measurement_dim):
+            raise ValueError(
+                f"{type(self).__name__}.measure returned {tuple(measurements.shape)}; expected "
+                f"{(n, t, self.measurement_dim)} (N, T, measurement_dim)."
+            )
+        meta = {
+            "system": self.name,
+            "system_target": f"{type(self).__module__}.{type(self).__qualname__}",
+            "system_config": self.config(),
+            "group": repr(self.group),
+            "dt": float(self.dt),
+            "sigma": sigma,
+            "measurement_dim": self.measurement_dim,
+            "input_dim": self.input_dim,
+        }
+        return TrajectoryDataset(states, measurements, self.inputs(drive), meta)
+
+    # ------------------------------------------------------------------ evaluation hooks
+
+    def metrics(self, estimates: torch.Tensor, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
+        """Per-factor embedding errors ``||pi(xhat) - pi(x)||``, each ``(N, T')``.
+
+        ``estimates`` is ``(N, T+1, *element_shape)`` (compared with ``x_0 .. x_T``) or
+        ``(N, T, *element_shape)`` (compared with ``x_1 .. x_T``). For a :class:`groups.Product`
+        the keys are the factor names (``factor0``, ... when unnamed); otherwise ``x``. For SO(3)
+        as rotation matrices this is the Frobenius norm ``||Rhat - R||_F`` of the paper's table.
+        """
+        states = data.states.to(dtype=estimates.dtype, device=estimates.device)
+        if estimates.shape[1] == states.shape[1] - 1:
+            states = states[:, 1:]
+        if estimates.shape != states.shape:
+            short = (len(data), data.length, *data.states.shape[2:])
+            raise ValueError(
+                f"estimates must be (N, T+1, ...) or (N, T, ...) = {tuple(data.states.shape)} "
+                f"or {short}; got {tuple(estimates.shape)}."
+            )
+        diff = self.group.embed(estimates) - self.group.embed(states)
+        g = self.group
+        if isinstance(g, Product):
+            names = g.names or tuple(f"factor{i}" for i in range(len(g.factors)))
+            return {
+                name: torch.linalg.vector_norm(diff[..., g.embedding_slice(i)], dim=-1)
+                for i, name in enumerate(names)
+            }
+        return {"x": torch.linalg.vector_norm(diff, dim=-1)}
+
+    def measurement_errors(self, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
+        """Errors of the raw measurements against the true states, ``{name: (N, T)}``.
+
+        The baseline an observer must beat (the paper's ``R^m`` and ``p^m`` columns). Default:
+        none; a system whose measurement contains state factors overrides it.
+        """
+        return {}
+
+    def __repr__(self) -> str:
+        args = ", ".join(f"{k}={v!r}" for k, v in self.config().items())
+        return f"{type(self).__name__}({args})"
