@@ -30,14 +30,14 @@ def rotation_and_left_jacobian(w: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
     """``(*batch, 3) -> (R, J_l)``, both ``(*batch, 3, 3)``: ``SO3().exp(w)`` and
     ``so3.left_jacobian(w)`` computed together, sharing ``|w|^2`` and ``(1 - cos t)/t^2``.
 
-    ``R = I + A K + B K^2`` and ``J_l = I + B K + C K^2`` with ``K = skew(w)``; written as
-    ``a I + skew(b w) + c w w^T`` like SO(3)'s own functions. Used by every pose ``exp``.
+    ``R = I + A K + B K^2`` and ``J_l = I + B K + C K^2`` with ``K = skew(w)``, both through
+    SO(3)'s ``_quadratic_form``. Used by every pose ``exp``.
     """
     t2 = (w * w).sum(-1)
     a = nx.sin_over_t(t2)
     b = nx.one_minus_cos_over_t2(t2)
     c = nx.t_minus_sin_over_t3(t2)
-    return _quadratic_form(w, 1.0 - b * t2, a, b), _quadratic_form(w, 1.0 - c * t2, b, c)
+    return _quadratic_form(w, a, b), _quadratic_form(w, b, c)
 
 
 def homogeneous(top: torch.Tensor, algebra: bool = False) -> torch.Tensor:

@@ -33,11 +33,17 @@ def unskew(m: torch.Tensor) -> torch.Tensor:
     )
 
 
-def _quadratic_form(w: torch.Tensor, a: torch.Tensor, b: torch.Tensor, c: torch.Tensor):
-    """``a I + skew(b w) + c w w^T`` for per-batch scalars ``a, b, c`` (shape ``(*batch,)``)."""
-    eye = torch.eye(3, dtype=w.dtype, device=w.device)
+def _quadratic_form(w: torch.Tensor, b: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+    """``I + b K + c K^2`` with ``K = skew(w)``, for per-batch scalars ``b, c`` (``(*batch,)``).
+
+    ``K^2 = w w^T - |w|^2 I``. The diagonal ``1 - c (|w|^2 - w_i^2)`` is rounded once, next to 1,
+    not through a rounded ``1 - c |w|^2`` (a systematic error that float32 chains accumulate).
+    """
+    sq = w * w
     outer = (c.unsqueeze(-1) * w).unsqueeze(-1) * w.unsqueeze(-2)
-    return outer + skew(b.unsqueeze(-1) * w) + a[..., None, None] * eye
+    diag = 1.0 - c.unsqueeze(-1) * (sq.sum(-1, keepdim=True) - sq)
+    on_diagonal = torch.eye(3, dtype=torch.bool, device=w.device)
+    return torch.where(on_diagonal, torch.diag_embed(diag), outer + skew(b.unsqueeze(-1) * w))
 
 
 def left_jacobian(w: torch.Tensor) -> torch.Tensor:
@@ -49,14 +55,14 @@ def left_jacobian(w: torch.Tensor) -> torch.Tensor:
     t2 = (w * w).sum(-1)
     b = nx.one_minus_cos_over_t2(t2)
     c = nx.t_minus_sin_over_t3(t2)
-    return _quadratic_form(w, 1.0 - c * t2, b, c)
+    return _quadratic_form(w, b, c)
 
 
 def left_jacobian_inverse(w: torch.Tensor) -> torch.Tensor:
     """``J_l(w)^-1 = I - K/2 + D K^2``, finite on the whole log domain ``|w| <= pi``."""
     t2 = (w * w).sum(-1)
     d = nx.inv_left_jacobian_coeff(t2)
-    return _quadratic_form(w, 1.0 - d * t2, torch.full_like(t2, -0.5), d)
+    return _quadratic_form(w, torch.full_like(t2, -0.5), d)
 
 
 def _quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
