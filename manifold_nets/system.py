@@ -18,6 +18,11 @@ A subclass writes ``sample_initial_state``, ``sample_drive``, ``step``, ``measur
 and sets ``group``, ``measurement_dim``, ``input_dim``, ``drive_dim``, ``noise_dim``, ``dt`` and
 ``name``. :meth:`System.simulate` then draws, in this order from one ``torch.Generator``, the
 initial states, the drive and the noise, rolls the dynamics out and measures, in float64.
+
+Optional hooks for classical filters and baselines (:mod:`manifold_nets.ekf`,
+:mod:`manifold_nets.baselines`): ``measurement_residual`` (how a measurement is compared with a
+predicted one; default the plain difference), ``state_from_measurement`` (the raw-measurement
+baseline) and ``drive_from_measurement`` (the drive as read, for dead reckoning).
 """
 
 from __future__ import annotations
@@ -213,6 +218,46 @@ class System(abc.ABC):
                 for i, name in enumerate(names)
             }
         return {"x": torch.linalg.vector_norm(diff, dim=-1)}
+
+    # ------------------------------------------------------------------ hooks for classical filters
+
+    def measurement_residual(self, y: torch.Tensor, y_hat: torch.Tensor) -> torch.Tensor:
+        """The innovation of a measurement ``y`` against a predicted one ``y_hat``, ``(*batch, d)``.
+
+        A Kalman filter linearises this, not ``y - y_hat``, so that a measurement with a group
+        part (a measured rotation) is compared on the group. The residual must behave like a
+        ``minus``: ``residual(y_hat, y_hat) = 0`` and, near ``y_hat``, first order in the
+        measurement noise. Default: the plain difference ``y - y_hat`` in ``R^l`` (``d = l``).
+        """
+        return y - y_hat
+
+    def state_from_measurement(self, y: torch.Tensor) -> torch.Tensor:
+        """The state read off a measurement, ``(*batch, measurement_dim) -> (*batch, *element_shape)``.
+
+        The raw-measurement baseline (:mod:`manifold_nets.baselines`): the measured factors taken
+        as they are, the unmeasured ones at the identity. Optional; a system whose measurement
+        holds (part of) the state overrides it.
+        """
+        raise NotImplementedError(
+            f"{type(self).__name__} does not say how to read a state off a measurement: override "
+            f"state_from_measurement(y) (the measured factors, the others at the identity) to use "
+            f"the raw-measurement or dead-reckoning baselines."
+        )
+
+    def drive_from_measurement(self, y: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The drive ``w_k`` as read, ``(*batch, drive_dim)``, from ``y_{k+1}`` and ``u_k``.
+
+        What a filter knows of the motion over the step ``k -> k+1`` without a state estimate
+        (for the rigid body: the biased velocity readings). Dead reckoning steps with it.
+        Default: the input itself when the drive is all known input (``input_dim == drive_dim``).
+        """
+        if self.input_dim == self.drive_dim:
+            return u
+        raise NotImplementedError(
+            f"{type(self).__name__}: the drive (drive_dim={self.drive_dim}) is not the input "
+            f"(input_dim={self.input_dim}); override drive_from_measurement(y, u) to say how the "
+            f"drive is read from the measurement and input (e.g. velocity readings in y)."
+        )
 
     def measurement_errors(self, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """Errors of the raw measurements against the true states, ``{name: (N, T)}``.

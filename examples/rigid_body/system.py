@@ -205,6 +205,29 @@ class RigidBody(System):
         Rm = (R @ _SO3.exp(noise[..., :3])).flatten(-2)
         return _cat(Rm, x[..., 9:12] + noise[..., 3:6], rates + noise[..., 6:])
 
+    def measurement_residual(self, y: torch.Tensor, y_hat: torch.Tensor) -> torch.Tensor:
+        """``(log(Rhat^T R^m), p^m - phat, Omega^m - Omegahat^m, v^m - vhat^m)``, ``(*batch, 12)``.
+
+        The rotation is compared on SO(3), in the tangent at the predicted ``Rhat`` (a right
+        difference, like the noise ``R^m = R exp([w1]x)``), so the residual is ``w1`` itself to
+        first order; the rest are plain differences. ``y_hat``'s rotation part must be a rotation.
+        """
+        _check_last(y, 18, "measurement")
+        _check_last(y_hat, 18, "predicted measurement")
+        Rm = y[..., :9].unflatten(-1, (3, 3))
+        Rhat = y_hat[..., :9].unflatten(-1, (3, 3))
+        return _cat(_SO3.log(Rhat.transpose(-1, -2) @ Rm), y[..., 9:] - y_hat[..., 9:])
+
+    def state_from_measurement(self, y: torch.Tensor) -> torch.Tensor:
+        """``(R^m, p^m, 0, 0)``, ``(*batch, 18)``: the measured pose; the biases are not measured."""
+        _check_last(y, 18, "measurement")
+        return torch.cat((y[..., :12], torch.zeros_like(y[..., 12:])), dim=-1)
+
+    def drive_from_measurement(self, y: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
+        """The velocity readings ``(Omega^m_k, v^m_k)`` of ``y_{k+1}``, biases and noise included."""
+        _check_last(y, 18, "measurement")
+        return y[..., 12:]
+
     def measurement_errors(self, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """``||R^m - R||_F`` and ``||p^m - p||`` per step, ``(N, T)`` each: the paper's baseline."""
         x, y = data.states[:, 1:], data.measurements

@@ -1,0 +1,307 @@
+"""The error-state EKF: the textbook Kalman filter on a linear system, convergence and consistency
+on the rigid body, the covariance's symmetry and definiteness, and its Jacobians (autograd against
+finite differences and against the analytic multiplicative-EKF ones)."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+from examples.rigid_body import RigidBody
+from examples.rigid_body.filters import (
+    RigidBodyEKF,
+    RigidBodyFilterModel,
+    initialize_from_measurements,
+    jl_times_v_derivative,
+)
+from groups import SO3, Euclidean
+from groups.so3 import left_jacobian
+from manifold_nets.ekf import ErrorStateEKF, FilterModel, SystemFilterModel
+from manifold_nets.system import System
+
+F64 = torch.float64
+
+
+def gen(seed: int) -> torch.Generator:
+    return torch.Generator().manual_seed(seed)
+
+
+class LinearSystem(System):
+    """``x' = A x + B w``, ``y = C x + D nu`` on ``R^3``; the drive is the known input."""
+
+    name = "linear"
+    measurement_dim = 2
+    input_dim = 2
+    drive_dim = 2
+    noise_dim = 2
+    dt = 1.0
+
+    def __init__(self):
+        g = gen(0)
+        self.group = Euclidean(3)
+        self.A = torch.eye(3, dtype=F64) + 0.2 * torch.randn(3, 3, generator=g, dtype=F64)
+        self.B = torch.randn(3, 2, generator=g, dtype=F64)
+        self.C = torch.randn(2, 3, generator=g, dtype=F64)
+        self.D = torch.eye(2, dtype=F64) + 0.3 * torch.randn(2, 2, generator=g, dtype=F64)
+
+    def config(self):
+        return {}
+
+    def sample_initial_state(self, n, generator):
+        return torch.randn(n, 3, generator=generator, dtype=F64)
+
+    def sample_drive(self, n, length, generator):
+        return torch.randn(n, length, 2, generator=generator, dtype=F64)
+
+    def step(self, x, drive, dt=None):
+        A, B = self.A.to(x), self.B.to(x)
+        return x @ A.T + drive @ B.T
+
+    def measure(self, x, drive, noise=None):
+        y = x @ self.C.to(x).T
+        return y if noise is None else y + noise @ self.D.to(x).T
+
+
+def textbook_kalman(sys: LinearSystem, y, u, sigma, q, s0):
+    """The Kalman filter as printed, one sequence at a time, with the standard covariance update."""
+    A, B, C, D = sys.A, sys.B, sys.C, sys.D
+    Q, Rn = q**2 * B @ B.T, sigma**2 * D @ D.T
+    out = []
+    for i in range(y.shape[0]):
+        x, P = torch.zeros(3, dtype=F64), s0**2 * torch.eye(3, dtype=F64)
+        xs = [x]
+        for k in range(y.shape[1]):
+            x = A @ x + B @ u[i, k]
+            P = A @ P @ A.T + Q
+            S = C @ P @ C.T + Rn
+            K = P @ C.T @ torch.linalg.inv(S)
+            x = x + K @ (y[i, k] - C @ x)
+            P = (torch.eye(3, dtype=F64) - K @ C) @ P
+            xs.append(x)
+        out.append(torch.stack(xs))
+    return torch.stack(out)
+
+
+def test_linear_system_equals_textbook_kalman_filter():
+    sys = LinearSystem()
+    sigma, q, s0 = 0.3, 0.2, 2.0
+    ds = sys.simulate(3, 25, sigma, gen(1))
+    ekf = ErrorStateEKF(SystemFilterModel(sys, sigma, drive_noise_std=q, initial_std=s0))
+    res = ekf.filter(ds.measurements, ds.inputs, return_covariances=True)
+    ref = textbook_kalman(sys, ds.measurements, ds.inputs, sigma, q, s0)
+    assert res.estimates.shape == (3, 26, 3)
+    torch.testing.assert_close(res.estimates, ref, atol=1e-10, rtol=0)
+    assert float((res.estimates - ds.states).norm(dim=-1)[:, 5:].mean()) < float(
+        (ds.states[:, 5:]).norm(dim=-1).mean()
+    )
+
+
+def test_float32_follows_float64():
+    sys = LinearSystem()
+    ds = sys.simulate(2, 15, 0.3, gen(2))
+    ekf = ErrorStateEKF(SystemFilterModel(sys, 0.3, drive_noise_std=0.2))
+    r64 = ekf.filter(ds.measurements, ds.inputs).estimates
+    r32 = ekf.filter(ds.measurements.float(), ds.inputs.float()).estimates
+    assert r32.dtype == torch.float32
+    torch.testing.assert_close(r32.double(), r64, atol=1e-4, rtol=1e-4)
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_rigid_body_converges_and_covariance_stays_spd(dtype):
+    sys = RigidBody()
+    sigma = 0.05
+    ds = sys.simulate(6, 60, sigma, gen(3)).to(dtype)
+    res = ErrorStateEKF(RigidBodyFilterModel(sys, sigma), jacobians="analytic").filter(
+        ds.measurements, return_covariances=True
+    )
+    m = sys.metrics(res.estimates, ds)
+    for name in ("R", "p", "b_omega", "b_v"):  # errors shrink over time
+        early, late = float(m[name][:, 2:6].mean()), float(m[name][:, 40:].mean())
+        assert late < 0.7 * early, (name, early, late)
+    raw = sys.measurement_errors(ds)
+    assert float(m["R"][:, 40:].mean()) < 0.6 * float(raw["R"][:, 39:].mean())
+    P = res.covariances
+    assert torch.equal(P, P.transpose(-1, -2))  # symmetrised exactly
+    assert float(torch.linalg.eigvalsh(P.double()).min()) > 0
+    assert float(sys.group.membership_error(res.estimates).max()) < (
+        1e-4 if dtype == torch.float32 else 1e-12
+    )
+    assert torch.isfinite(res.estimates).all()
+
+
+def test_nis_is_consistent_and_autograd_filter_equals_analytic():
+    sys = RigidBody()
+    sigma = 0.2
+    ds = sys.simulate(10, 60, sigma, gen(4))
+    auto = ErrorStateEKF(RigidBodyFilterModel(sys, sigma)).filter(ds.measurements)
+    ana = ErrorStateEKF(RigidBodyFilterModel(sys, sigma), jacobians="analytic").filter(
+        ds.measurements
+    )
+    torch.testing.assert_close(auto.estimates, ana.estimates, atol=1e-10, rtol=0)
+    nis = float(ana.nis[:, 10:].mean())  # chi^2 with 6 degrees of freedom when consistent
+    assert 5.0 < nis < 7.0, nis
+
+
+# ------------------------------------------------------------------ Jacobians
+
+
+def _states_and_readings(n: int, seed: int):
+    sys = RigidBody()
+    ds = sys.simulate(n, 2, 0.3, gen(seed))
+    g = gen(seed + 100)
+    x = ds.states[:, 1].clone()
+    x[:, 12:] += torch.randn(n, 6, generator=g, dtype=F64)  # an estimate, not the truth
+    y = ds.measurements[:, 1].clone()
+    y[0, 12:15] = x[0, 12:15]  # phi = 0 exactly: the Taylor branches
+    y[1, 12:15] = x[1, 12:15] + 1e-4
+    return sys, x, y
+
+
+def _finite_difference(fn, dim: int, eps: float = 1e-6) -> torch.Tensor:
+    cols = []
+    for i in range(dim):
+        e = torch.zeros(dim, dtype=F64)
+        e[i] = eps
+        cols.append((fn(e) - fn(-e)) / (2 * eps))
+    return torch.stack(cols, dim=-1)
+
+
+def test_process_jacobians_autograd_finite_differences_and_analytic_agree():
+    sys, x, y = _states_and_readings(6, 5)
+    model = RigidBodyFilterModel(sys, 0.3)
+    g = sys.group
+    u = y.new_zeros(len(y), 0)
+    F, G = ErrorStateEKF(model).process_jacobians(x, y, u)
+    Fa, Ga = model.process_jacobians(x, y, u)
+    x_pred = model.step(x, model.drive(x, y, u))
+    Ffd = _finite_difference(
+        lambda e: g.rminus(
+            model.step(
+                g.rplus(x, e.expand(len(x), 12)),
+                model.drive(g.rplus(x, e.expand(len(x), 12)), y, u),
+            ),
+            x_pred,
+        ),
+        12,
+    )
+    Gfd = _finite_difference(
+        lambda q: g.rminus(model.step(x, model.drive(x, y, u, q.expand(len(x), 6))), x_pred), 6
+    )
+    torch.testing.assert_close(F, Fa, atol=1e-12, rtol=0)
+    torch.testing.assert_close(G, Ga, atol=1e-12, rtol=0)
+    torch.testing.assert_close(F, Ffd, atol=1e-7, rtol=0)
+    torch.testing.assert_close(G, Gfd, atol=1e-7, rtol=0)
+
+
+def test_measurement_and_reset_jacobians_agree():
+    sys, x, y = _states_and_readings(5, 6)
+    model = RigidBodyFilterModel(sys, 0.3)
+    ekf = ErrorStateEKF(model)
+    w = model.drive(x, y, y.new_zeros(5, 0))
+    z_hat = model.measure(x, w)
+    H, M = ekf.measurement_jacobians(x, w, z_hat, 6)
+    Ha, Ma = model.measurement_jacobians(x, w)
+    torch.testing.assert_close(H, Ha, atol=1e-12, rtol=0)
+    torch.testing.assert_close(M, Ma, atol=1e-12, rtol=0)
+    delta = torch.randn(5, 12, generator=gen(7), dtype=F64)
+    delta[0] = 0.0
+    x_plus = sys.group.rplus(x, delta)
+    J = ekf.reset_jacobian(x, delta, x_plus)
+    torch.testing.assert_close(J, model.reset_jacobian(x, delta), atol=1e-12, rtol=0)
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-8, 1e-3, 0.0999, 0.1001, 0.4999, 0.5001, 1.0, 3.0])
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_jl_times_v_derivative_matches_autograd(angle, dtype):
+    axis = torch.tensor([0.48, -0.6, 0.64], dtype=F64)
+    phi = (angle * axis).to(dtype)
+    v = torch.tensor([0.3, -1.2, 0.7], dtype=dtype)
+    ref = torch.autograd.functional.jacobian(lambda p: left_jacobian(p) @ v.double(), phi.double())
+    got = jl_times_v_derivative(phi, v)
+    tol = 1e-10 if dtype == torch.float64 else 2e-5
+    torch.testing.assert_close(got.double(), ref, atol=tol, rtol=0)
+
+
+# ------------------------------------------------------------------ the estimator, initialisation, errors
+
+
+def test_initialize_from_measurements_recovers_biases_at_small_noise():
+    sys = RigidBody()
+    ds = sys.simulate(20, 6, 1e-6, gen(8))
+    x, P = initialize_from_measurements(sys, ds.measurements[:, :5], 1e-6)
+    torch.testing.assert_close(x[:, 12:], ds.states[:, 5, 12:], atol=1e-4, rtol=0)
+    assert (
+        float(
+            SO3()
+            .distance(x[:, :9].unflatten(-1, (3, 3)), ds.states[:, 5, :9].unflatten(-1, (3, 3)))
+            .max()
+        )
+        < 1e-5
+    )
+    assert P.shape == (20, 12, 12) and float(torch.linalg.eigvalsh(P).min()) > 0
+
+
+def test_rigid_body_ekf_estimator_format_and_starts():
+    sys = RigidBody()
+    ds = sys.simulate(4, 30, 0.2, gen(9))
+    for m in (0, 5):
+        est = RigidBodyEKF(sys, 0.2, init_steps=m).estimate(ds)
+        assert est.shape == (4, 31, 18)
+        torch.testing.assert_close(est[:, 0], sys.group.identity((4,), dtype=F64))
+        if m:
+            torch.testing.assert_close(
+                est[:, 1:m], sys.state_from_measurement(ds.measurements[:, : m - 1])
+            )
+    with pytest.raises(ValueError, match="init_steps"):
+        RigidBodyEKF(sys, 0.2, init_steps=1)
+
+
+def test_clear_errors():
+    sys = RigidBody()
+    with pytest.raises(ValueError, match="sigma > 0"):
+        RigidBodyFilterModel(sys, 0.0)
+    with pytest.raises(ValueError, match="sigma > 0"):
+        SystemFilterModel(LinearSystem(), 0.0)
+    with pytest.raises(TypeError, match="FilterModel"):
+        ErrorStateEKF(sys)
+    ekf = ErrorStateEKF(RigidBodyFilterModel(sys, 0.1))
+    with pytest.raises(ValueError, match="jacobians"):
+        ErrorStateEKF(RigidBodyFilterModel(sys, 0.1), jacobians="numeric")
+    with pytest.raises(ValueError, match=r"\(N, T, 18\)"):
+        ekf.filter(torch.zeros(2, 5, 12, dtype=F64))
+
+    class Silent(SystemFilterModel):  # a measurement that does not see the state: S = 0
+        def measurement_noise_cov(self, dtype, device=None):
+            return torch.zeros(self.measurement_noise_dim, self.measurement_noise_dim, dtype=dtype)
+
+    lin = LinearSystem()
+    ds = lin.simulate(1, 3, 0.1, gen(10))
+    P0 = torch.zeros(1, 3, 3, dtype=F64)
+    with pytest.raises(ValueError, match="not positive definite"):
+        ErrorStateEKF(Silent(lin, 0.1)).filter(ds.measurements, ds.inputs, P0=P0)
+
+
+def test_filter_model_without_analytic_jacobians_says_so():
+    lin = LinearSystem()
+    ds = lin.simulate(1, 2, 0.1, gen(11))
+    ekf = ErrorStateEKF(SystemFilterModel(lin, 0.1), jacobians="analytic")
+    with pytest.raises(NotImplementedError, match="autograd"):
+        ekf.filter(ds.measurements, ds.inputs)
+    assert issubclass(SystemFilterModel, FilterModel)
+
+
+def test_measurement_residual_hook():
+    sys = RigidBody()
+    ds = sys.simulate(3, 2, 0.0, gen(12))
+    y_hat = sys.measure(ds.states[:, 1:], torch.zeros(3, 2, 6, dtype=F64))
+    assert float(sys.measurement_residual(y_hat, y_hat).abs().max()) < 1e-14
+    noise = 1e-3 * torch.randn(3, 2, 12, generator=gen(13), dtype=F64)
+    y = sys.measure(ds.states[:, 1:], torch.zeros(3, 2, 6, dtype=F64), noise)
+    r = sys.measurement_residual(y, y_hat)
+    assert r.shape == (3, 2, 12)
+    torch.testing.assert_close(r, noise, atol=1e-12, rtol=0)  # the noise is a right perturbation
+    assert math.isclose(
+        float(LinearSystem().measurement_residual(torch.ones(2), torch.zeros(2)).sum()), 2.0
+    )
