@@ -1,0 +1,106 @@
+"""Checkpoints: a ``state_dict`` with the resolved config beside it, safe to load.
+
+A checkpoint is one ``torch.save`` file holding only tensors and plain Python data (dicts,
+lists, strings, numbers), so it loads with ``torch.load(weights_only=True)``: no pickled
+module, no code execution on load. Keys:
+
+* ``format``: ``"manifold_nets.checkpoint/1"``;
+* ``model``: the observer's ``state_dict``; ``signature``: what the model must match
+  (group, sizes, update rules, core) — loading into another model fails with a clear message;
+* ``config``: the resolved run config (a plain dict), so a run can be rebuilt from it;
+* ``epoch``: the last finished epoch; optionally ``optimizer`` (its ``state_dict``), ``rng``
+  (``torch.Generator`` states as byte tensors), ``best`` and ``history`` (for resuming).
+
+Files are written to a temporary name in the same folder and renamed (``os.replace``), so an
+interrupted write never leaves a half checkpoint.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+from typing import Any
+
+import torch
+
+__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint", "check_signature"]
+
+FORMAT = "manifold_nets.checkpoint/1"
+
+
+class CheckpointError(ValueError):
+    """A checkpoint file is missing, unreadable, of another format or for another model."""
+
+
+def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
+    """Writes ``payload`` (plain data and tensors) with the format tag to ``path``, atomically."""
+    path = Path(path)
+    for key in ("model", "signature", "config", "epoch"):
+        if key not in payload:
+            raise ValueError(f"a checkpoint needs the key {key!r}; got {sorted(payload)}.")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save({"format": FORMAT, **payload}, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def _describe_diff(found: dict, expected: dict, prefix: str = "") -> list[str]:
+    out = []
+    for key in sorted(set(found) | set(expected)):
+        a, b = found.get(key, "<missing>"), expected.get(key, "<missing>")
+        if isinstance(a, dict) and isinstance(b, dict):
+            out += _describe_diff(a, b, f"{prefix}{key}.")
+        elif a != b:
+            out.append(f"{prefix}{key}: checkpoint {a!r}, model {b!r}")
+    return out
+
+
+def check_signature(found: dict, expected: dict, where: str = "checkpoint") -> None:
+    """Raises :class:`CheckpointError` naming every field where two model signatures differ."""
+    diff = _describe_diff(found, expected)
+    if diff:
+        raise CheckpointError(
+            f"{where} was made for another model (" + "; ".join(diff) + "). Build the model "
+            "with the checkpoint's config (its 'config' entry), or point to the right checkpoint."
+        )
+
+
+def load_checkpoint(
+    path: str | os.PathLike,
+    expected_signature: dict | None = None,
+    map_location: str | torch.device = "cpu",
+) -> dict[str, Any]:
+    """Reads a checkpoint with ``torch.load(weights_only=True)`` and checks it.
+
+    Raises :class:`CheckpointError` for a missing file, a file that is not a manifold_nets
+    checkpoint, or (given ``expected_signature``, e.g. ``model.signature()``) a checkpoint of
+    another model.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no checkpoint at {path}; train first or fix the path.")
+    try:
+        ckpt = torch.load(path, map_location=map_location, weights_only=True)
+    except Exception as err:  # unpickling errors come in many types
+        raise CheckpointError(
+            f"{path} is not a loadable checkpoint ({type(err).__name__}: {str(err)[:300]}); "
+            "only files written by manifold_nets (plain data and tensors) load safely."
+        ) from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        fmt = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
+        raise CheckpointError(f"{path} has format {fmt!r}, expected {FORMAT!r}.")
+    if expected_signature is not None:
+        check_signature(ckpt["signature"], expected_signature, where=str(path))
+    return ckpt

@@ -1,0 +1,392 @@
+"""``python -m manifold_nets.train``: data -> training -> the paper's table and figure, by hydra.
+
+One command generates (or reuses from the cache) the datasets of the configured system, trains
+the residual observer, keeps the best-validation model, evaluates it on a noisy inference set
+per sigma and writes everything into its own run folder::
+
+    python -m manifold_nets.train experiment=default              # small: minutes on 2 CPU cores
+    python -m manifold_nets.train experiment=paper_rigid_body     # the paper's sizes
+    python -m manifold_nets.train -m experiment=default seed=0,1,2
+    python -m manifold_nets.train -m experiment=default eval.checkpoint=<run>/checkpoints/best.pt \
+        eval.sigma=0.1,0.2,0.3,0.4,0.5
+    python -m manifold_nets.sweep multirun/default/<run id>     # one table for a sweep
+
+A run folder (``outputs/<name>/<date_time_pid>/``, or ``multirun/<name>/<date_time_pid>/<job>/``)
+holds ``config.yaml`` (resolved), ``log.csv``/``log.json`` (per epoch), ``checkpoints/best.pt``
+and ``last.pt``, and ``results/``: ``table.csv``, ``table.md``, ``metrics.json`` and one
+``errors_sigma<s>.png`` per sigma. Interrupted? Resume with ``train.resume=<run folder>``.
+
+:func:`run` does the work from a composed config and is what tests call; :func:`build_observer`
+turns a ``model`` config into a :class:`~manifold_nets.observer.ResidualObserver`.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+# OpenMP threads that spin while they wait make torch 10-50x slower as soon as another process
+# shares the cores (measured on 2 busy cores: 3 s instead of 0.13 s for a small training batch).
+# Sleeping waits cost a wake-up per parallel region instead. Only effective when this module
+# imports torch first (the command line); an OMP_WAIT_POLICY set by the user wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+import torch  # noqa: E402
+from omegaconf import DictConfig, OmegaConf  # noqa: E402
+
+from groups import Product  # noqa: E402
+
+from . import train_config  # noqa: F401  (registers the schema and the run-id resolver)
+from .checkpoint import load_checkpoint
+from .data import DatasetError, TrajectoryDataset, load_dataset
+from .evaluation import evaluate, plot_errors, write_table
+from .generate import DatasetConfig, load_or_generate
+from .observer import GRUCore, RecurrentCore, ResidualObserver, factor_names
+from .train_config import DTYPES, RunConfig
+from .training import fit, resolve_checkpoint, validation_loss
+
+__all__ = ["build_observer", "resolve_device", "check_config", "run", "main"]
+
+log = logging.getLogger(__name__)
+
+
+def _dtype(name: str, key: str) -> torch.dtype:
+    if name not in DTYPES:
+        raise ValueError(f"{key} must be one of {DTYPES}, got {name!r}.")
+    return getattr(torch, name)
+
+
+def _innovation_factors(group, innovation: dict) -> list:
+    names = factor_names(group)
+    unknown = [k for k in innovation if k not in names]
+    if unknown:
+        raise ValueError(
+            f"model.innovation names factors {unknown} that the group {group!r} does not have; "
+            f"its factors: {list(names)}."
+        )
+    if isinstance(group, Product):
+        return [group.factors[names.index(k)] for k in innovation]
+    return [group] * len(innovation)
+
+
+def build_observer(group, measurement_dim: int, input_dim: int, mcfg: Any) -> ResidualObserver:
+    """The observer of a ``model`` config (:class:`~manifold_nets.train_config.ModelConfig`)."""
+    innovation = {k: list(v) for k, v in dict(mcfg.innovation).items()}
+    in_size = (
+        group.embedding_dim
+        + measurement_dim
+        + input_dim
+        + sum(g.tangent_dim for g in _innovation_factors(group, innovation))
+    )
+    if mcfg.core == "gru":
+        core = GRUCore(in_size, group.tangent_dim, mcfg.hidden_size, mcfg.num_layers)
+    else:
+        from hydra.utils import get_class
+
+        try:
+            cls = get_class(mcfg.core)
+        except Exception as err:
+            raise ValueError(
+                f"model.core must be 'gru' or the dotted path of a RecurrentCore subclass; "
+                f"{mcfg.core!r} could not be imported ({err})."
+            ) from None
+        if not (isinstance(cls, type) and issubclass(cls, RecurrentCore)):
+            raise ValueError(f"model.core={mcfg.core!r} is not a RecurrentCore subclass.")
+        core = cls(
+            in_size, group.tangent_dim, hidden_size=mcfg.hidden_size, num_layers=mcfg.num_layers
+        )
+    rules = dict(mcfg.updates)
+    update = {name: rules.pop(name, mcfg.default_update) for name in factor_names(group)}
+    if rules:
+        raise ValueError(
+            f"model.updates names factors {sorted(rules)} that the group {group!r} does not have; "
+            f"its factors: {list(factor_names(group))}."
+        )
+    model = ResidualObserver(
+        group,
+        measurement_dim,
+        input_dim,
+        core,
+        update=update,
+        innovation=innovation,
+        state_dtype=_dtype(mcfg.state_dtype, "model.state_dtype"),
+    )
+    return model.to(_dtype(mcfg.net_dtype, "model.net_dtype"))
+
+
+def resolve_device(name: str) -> torch.device:
+    """``cpu``, ``cuda[:i]`` or ``auto``; a clear error when CUDA is asked for but missing."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(
+            f"train.device={name!r} but CUDA is not available here; use train.device=cpu."
+        )
+    return dev
+
+
+def _check_system(system) -> None:
+    for attr in ("group", "measurement_dim", "input_dim"):
+        if not hasattr(system, attr):
+            raise TypeError(
+                f"the configured system {type(system).__name__} has no {attr!r}; a system must be "
+                "a manifold_nets.system.System (configs/system/<name>.yaml with a _target_)."
+            )
+
+
+def _dataset_config(cfg: DictConfig, **changes) -> DatasetConfig:
+    d = OmegaConf.to_object(cfg.dataset)
+    for k, v in changes.items():
+        setattr(d, k, v)
+    return d
+
+
+def _abs(path: str) -> str:
+    try:
+        from hydra.utils import to_absolute_path
+
+        return to_absolute_path(path)
+    except ValueError:  # hydra not initialised (tests, plain Python)
+        return str(Path(path).absolute())
+
+
+def load_training_data(system, cfg: DictConfig) -> dict[str, TrajectoryDataset]:
+    """The ``train``/``val`` (and ``test``) splits: read from ``data_file`` or made from ``dataset``."""
+    if cfg.get("data_file"):
+        path = Path(_abs(cfg.data_file))
+        if not path.is_file():
+            raise FileNotFoundError(
+                f"data_file={cfg.data_file!r}: no dataset at {path}. Generate one with "
+                "`python -m manifold_nets.generate ...` (or drop data_file to generate from "
+                "`dataset`)."
+            )
+        parts = load_dataset(path, group=system.group).splits()
+    elif cfg.train.noise.levels:
+        parts = _noise_level_mixture(system, cfg)
+    else:
+        dcfg = _dataset_config(cfg, inference=None)
+        parts = load_or_generate(system, dcfg, cache_dir=_abs(dcfg.cache_dir))
+    missing = [s for s in ("train", "val") if s not in parts]
+    if missing:
+        raise DatasetError(
+            f"training needs 'train' and 'val' splits; the data has {sorted(parts)}. Set "
+            "dataset.splits, e.g. {train: 0.8, val: 0.1, test: 0.1}."
+        )
+    return parts
+
+
+def _noise_level_mixture(system, cfg: DictConfig) -> dict[str, TrajectoryDataset]:
+    """Every split with each sequence's measurements taken from one noise level drawn at random.
+
+    The data are generated (or read from the cache) once per level of ``train.noise.levels``
+    with the same seed, so the trajectories agree and only the measurement noise differs.
+    """
+    levels = [float(s) for s in cfg.train.noise.levels]
+    if cfg.get("data_file"):
+        raise ValueError(
+            "train.noise.levels generates the data per level; it cannot be used with data_file."
+        )
+    base = _dataset_config(cfg, inference=None)
+    gen = torch.Generator().manual_seed(int(base.seed))
+    choice: dict[str, torch.Tensor] = {}
+    out: dict[str, TrajectoryDataset] = {}
+    for i, sigma in enumerate(levels):
+        dcfg = _dataset_config(cfg, inference=None, sigma=sigma)
+        parts = load_or_generate(system, dcfg, cache_dir=_abs(dcfg.cache_dir))
+        for name, part in parts.items():
+            if name not in choice:
+                choice[name] = torch.randint(len(levels), (len(part),), generator=gen)
+                meta = {**part.meta, "sigma": None, "noise_levels": levels}
+                out[name] = TrajectoryDataset(
+                    part.states, part.measurements.clone(), part.inputs, meta
+                )
+            elif not torch.equal(out[name].states, part.states):
+                raise DatasetError(
+                    f"the {name} split at sigma {sigma} has other trajectories than at sigma "
+                    f"{levels[0]}; the system must draw its noise after the trajectories."
+                )
+            pick = choice[name] == i
+            out[name].measurements[pick] = part.measurements[pick]
+    log.info("training data: noise levels %s, one per sequence", levels)
+    return out
+
+
+def load_inference_data(system, cfg: DictConfig, sigma: float) -> TrajectoryDataset:
+    """The inference set at ``sigma``: ``eval.num_sequences`` x ``eval.length`` from ``eval.seed``."""
+    e = cfg.eval
+    dcfg = _dataset_config(
+        cfg,
+        name="inference",
+        num_sequences=e.num_sequences,
+        length=e.length,
+        sigma=float(sigma),
+        seed=e.seed,
+        splits={"inference": 1.0},
+        inference=None,
+        regenerate=False,
+    )
+    return load_or_generate(system, dcfg, cache_dir=_abs(dcfg.cache_dir))["inference"]
+
+
+def _sigmas(cfg: DictConfig) -> list[float]:
+    sigmas = (
+        [float(cfg.eval.sigma)]
+        if cfg.eval.sigma is not None
+        else [float(s) for s in cfg.eval.sigmas]
+    )
+    for s in sigmas:
+        if not (math.isfinite(s) and s >= 0):
+            raise ValueError(f"eval sigmas must be finite and >= 0, got {s!r}.")
+    return sigmas
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Raises ``ValueError`` unless ``cfg`` fits :class:`~manifold_nets.train_config.RunConfig`.
+
+    Composing already checks overrides; this also catches keys appended with ``+``.
+    """
+    try:
+        OmegaConf.merge(OmegaConf.structured(RunConfig), OmegaConf.to_container(cfg))
+    except Exception as err:  # omegaconf's ConfigKeyError / ValidationError
+        msg = str(err).splitlines()[0]
+        raise ValueError(
+            f"the config does not fit the schema: {msg} (not in the schema "
+            "manifold_nets/train_config.py; check the spelling)."
+        ) from None
+
+
+def run(cfg: DictConfig, out_dir: str | Path) -> dict:
+    """Runs one experiment into ``out_dir`` (see the module docstring); returns the metrics."""
+    check_config(cfg)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    (out_dir / "config.yaml").write_text(OmegaConf.to_yaml(resolved))
+    sigmas = _sigmas(cfg)  # every check that needs no work, first
+    if cfg.train.threads is not None:
+        torch.set_num_threads(int(cfg.train.threads))
+    device = resolve_device(cfg.train.device)
+
+    from hydra.utils import instantiate
+
+    system = instantiate(cfg.system)
+    _check_system(system)
+    torch.manual_seed(int(cfg.seed))
+    model = build_observer(system.group, system.measurement_dim, system.input_dim, cfg.model).to(
+        device
+    )
+    log.info(
+        "observer: %s, %d parameters", model.signature(), sum(p.numel() for p in model.parameters())
+    )
+
+    metrics: dict[str, Any] = {"name": cfg.name, "seed": int(cfg.seed), "out_dir": str(out_dir)}
+    parts = None
+    if cfg.eval.checkpoint:
+        path = resolve_checkpoint(_abs(cfg.eval.checkpoint), name="best.pt")
+        ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=device)
+        model.load_state_dict(ckpt["model"])
+        metrics.update(
+            checkpoint=str(path),
+            best_epoch=ckpt["epoch"],
+            best_val_loss=ckpt.get("best", {}).get("val_loss"),
+        )
+        log.info("evaluating %s (epoch %s)", path, ckpt["epoch"])
+    else:
+        parts = load_training_data(system, cfg)
+        t = cfg.train
+        t0 = time.perf_counter()
+        result = fit(
+            model,
+            parts["train"],
+            parts["val"],
+            out_dir=out_dir,
+            epochs=t.epochs,
+            batch_size=t.batch_size,
+            lr=t.lr,
+            weight_decay=t.weight_decay,
+            grad_clip=t.grad_clip,
+            max_batches=t.max_batches,
+            eval_batch_size=t.eval_batch_size,
+            seed=int(cfg.seed),
+            noise_sigma=(t.noise.sigma_min, t.noise.sigma_max),
+            system=system,
+            config=resolved,
+            resume=_abs(t.resume) if t.resume else None,
+            progress=t.progress,
+        )
+        best = load_checkpoint(
+            result.best_path, expected_signature=model.signature(), map_location=device
+        )
+        model.load_state_dict(best["model"])
+        metrics.update(
+            best_epoch=result.best_epoch,
+            best_val_loss=result.best_val_loss,
+            train_seconds=time.perf_counter() - t0,
+            checkpoint=str(result.best_path),
+        )
+        if cfg.eval.test_split and "test" in parts:
+            metrics["test_loss"] = validation_loss(
+                model.to(device), parts["test"], t.eval_batch_size
+            )
+            log.info(
+                "test loss of the best model (epoch %d): %.5g",
+                result.best_epoch,
+                metrics["test_loss"],
+            )
+
+    res_dir = out_dir / "results"
+    rows, curves = [], {}
+    for sigma in sigmas:
+        data = load_inference_data(system, cfg, sigma)
+        r = evaluate(
+            model, data, system, skip=cfg.eval.skip_steps, batch_size=cfg.train.eval_batch_size
+        )
+        r.row = {
+            "sigma": sigma,
+            **{k: v for k, v in r.row.items() if k != "sigma"},
+            "seconds": r.seconds,
+        }
+        rows.append(r.row)
+        curves[f"{sigma:g}"] = {
+            k: [None if math.isnan(x) else x for x in v.tolist()] for k, v in r.curves.items()
+        }
+        if cfg.eval.plots:
+            plot_errors(
+                r,
+                res_dir / f"errors_sigma{sigma:g}.png",
+                title=f"{cfg.name}: sigma = {sigma:g}, {len(data)} x {data.length} steps",
+            )
+        log.info(
+            "sigma %g: %s",
+            sigma,
+            {k: (float(f"{v:.4g}") if isinstance(v, float) else v) for k, v in r.row.items()},
+        )
+    _, md_path = write_table(rows, res_dir / "table", title=f"{cfg.name} (seed {cfg.seed})")
+    metrics["table"] = rows
+    (res_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, default=str) + "\n")
+    (res_dir / "curves.json").write_text(json.dumps(curves) + "\n")
+    log.info("results in %s\n%s", res_dir, md_path.read_text())
+    return metrics
+
+
+def _hydra_main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    run(cfg, HydraConfig.get().runtime.output_dir)
+
+
+def main() -> None:
+    """The command-line entry (config root ``configs/``, primary config ``train.yaml``)."""
+    import hydra
+
+    hydra.main(version_base="1.3", config_path="../configs", config_name="train")(_hydra_main)()
+
+
+if __name__ == "__main__":
+    main()

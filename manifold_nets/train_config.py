@@ -1,0 +1,159 @@
+"""Structured configs of ``python -m manifold_nets.train``: typed dataclasses in the ConfigStore.
+
+``configs/train.yaml`` starts from the schema :class:`RunConfig` (stored as ``run_schema``), so
+every key of the ``model``, ``train``, ``eval`` and ``dataset`` groups and every command-line
+override is checked when the config is composed: a misspelt key (``model.hiden_size=64``) or a
+wrong type (``train.epochs=ten``) fails with hydra's message naming the key and the schema,
+before any work. ``system`` is free-form: a ``_target_`` class and its own parameters.
+
+Importing this module registers the schema and the ``mn_run_id`` resolver used in the output
+folder names (a timestamp and the process id, so two runs can never share a folder).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from hydra.core.config_store import ConfigStore
+from omegaconf import MISSING, OmegaConf
+
+from .generate import DatasetConfig
+
+__all__ = [
+    "ModelConfig",
+    "NoiseConfig",
+    "TrainSettings",
+    "EvalConfig",
+    "RunConfig",
+    "register_configs",
+    "DTYPES",
+]
+
+DTYPES = ("float32", "float64")
+
+
+@dataclass
+class ModelConfig:
+    """The observer: core sizes, per-factor update rules, dtypes (``configs/model/``)."""
+
+    #: ``gru`` (the paper's GRU stack + linear head) or the dotted path of a
+    #: :class:`manifold_nets.observer.RecurrentCore` subclass called with
+    #: ``(input_size, output_size, hidden_size=, num_layers=)``.
+    core: str = "gru"
+    hidden_size: int = 512
+    num_layers: int = 2
+    #: Rule of every factor not named in ``updates``: ``residual`` (x·exp(v)) or ``absolute``.
+    default_update: str = "residual"
+    #: Per-factor rules by factor name, e.g. ``{b_omega: absolute, b_v: absolute}`` (the paper).
+    updates: dict[str, str] = field(default_factory=dict)
+    #: Innovation inputs (an extension; empty = the paper's inputs): ``{factor: [start, stop]}``
+    #: where ``y[start:stop]`` is that factor's measured embedding, e.g. ``{R: [0, 9], p: [9, 12]}``
+    #: for the rigid body; the core also reads ``log(xhat_f^-1 m_f)`` per factor.
+    innovation: dict[str, list[int]] = field(default_factory=dict)
+    #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
+    state_dtype: str = "float64"
+    #: dtype of the network's parameters.
+    net_dtype: str = "float32"
+
+
+@dataclass
+class NoiseConfig:
+    """Noise-augmented training: each training sequence gets measurement noise of its own sigma.
+
+    Two ways, both off by default (the paper's noise-free protocol):
+
+    * ``levels``: the training data (every split) is generated once per level (same seed, so the
+      same trajectories) and each sequence takes its measurements from one level drawn at
+      random (seeded by ``dataset.seed``): sigma per sequence, fixed over the epochs; needs
+      nothing from the system but disk for one cached file per level.
+    * ``sigma_max > 0``: fresh noise every epoch, ``sigma ~ U[sigma_min, sigma_max]`` per
+      sequence, applied to the noise-free training data through ``system.apply_noise``.
+    """
+
+    levels: list[float] = field(default_factory=list)
+    sigma_min: float = 0.0
+    sigma_max: float = 0.0
+
+
+@dataclass
+class TrainSettings:
+    """The training loop (``configs/train/``): AdamW, BPTT through the whole rollout."""
+
+    epochs: int = 10
+    batch_size: int = 256
+    lr: float = 3.0e-4
+    weight_decay: float = 0.1
+    #: Clip the gradient's global norm to this value (``null``: no clipping, as the paper).
+    grad_clip: Optional[float] = None
+    #: Stop an epoch after this many batches (``null``: the whole training split); for quick looks.
+    max_batches: Optional[int] = None
+    #: Sequences per forward pass in validation and evaluation.
+    eval_batch_size: int = 500
+    noise: NoiseConfig = field(default_factory=NoiseConfig)
+    #: ``cpu``, ``cuda``, ``cuda:1``, ... or ``auto`` (cuda when available).
+    device: str = "cpu"
+    #: torch intra-op threads (``null``: torch's default).
+    threads: Optional[int] = None
+    #: Continue from a checkpoint: a ``last.pt`` file or the run folder that holds one.
+    resume: Optional[str] = None
+    #: Show a progress bar with the running loss (on a terminal).
+    progress: bool = True
+
+
+@dataclass
+class EvalConfig:
+    """Evaluation on noisy inference sets (``configs/eval/``), the paper's table and figure."""
+
+    #: Noise levels of the inference sets, one table row each.
+    sigmas: list[float] = field(default_factory=lambda: [0.1])
+    #: One noise level instead of ``sigmas`` (for sweeps: ``-m eval.sigma=0.1,0.2``).
+    sigma: Optional[float] = None
+    #: Size and seed of each inference set (the paper: 1000 sequences of 1000 steps).
+    num_sequences: int = 1000
+    length: int = 1000
+    seed: int = 1
+    #: Steps left out at the start of every sequence (the paper skips the first 10).
+    skip_steps: int = 10
+    #: Evaluate this checkpoint instead of training (a ``.pt`` file or a run folder).
+    checkpoint: Optional[str] = None
+    #: Write the figures (PNG).
+    plots: bool = True
+    #: Also report the loss on the test split of the training data.
+    test_split: bool = True
+
+
+@dataclass
+class RunConfig:
+    """The whole run: ``system`` x ``dataset`` x ``model`` x ``train`` x ``eval`` and a seed."""
+
+    #: The system: ``_target_`` (e.g. ``examples.rigid_body.system.RigidBody``) and its parameters.
+    system: Any = MISSING
+    dataset: DatasetConfig = field(default_factory=DatasetConfig)
+    #: Train on this dataset file (written by ``save_dataset``, with ``train``/``val`` splits)
+    #: instead of generating ``dataset``.
+    data_file: Optional[str] = None
+    model: ModelConfig = field(default_factory=ModelConfig)
+    train: TrainSettings = field(default_factory=TrainSettings)
+    eval: EvalConfig = field(default_factory=EvalConfig)
+    #: Seed of the model's initialisation, the batch order and the training noise.
+    seed: int = 0
+    #: Experiment name: the first level of the output folders.
+    name: str = "default"
+
+
+def _run_id() -> str:
+    """``YYYY-mm-dd_HH-MM-SS_<pid>``: unique among concurrent runs on one machine."""
+    return time.strftime("%Y-%m-%d_%H-%M-%S") + f"_{os.getpid()}"
+
+
+def register_configs() -> None:
+    """Registers the schema as ``run_schema`` and the ``mn_run_id`` resolver (idempotent)."""
+    ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    if not OmegaConf.has_resolver("mn_run_id"):
+        OmegaConf.register_new_resolver("mn_run_id", _run_id, use_cache=True)
+
+
+register_configs()

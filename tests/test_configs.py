@@ -1,0 +1,202 @@
+"""hydra configs: every experiment composes, typos fail, the whole command runs on tiny sizes."""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+from hydra import compose, initialize_config_dir
+from hydra.errors import ConfigCompositionException
+from omegaconf import OmegaConf
+
+import manifold_nets.train_config  # noqa: F401  (registers the schema)
+from manifold_nets import sweep
+from manifold_nets.checkpoint import CheckpointError
+from manifold_nets.train import run
+from manifold_nets.train_config import RunConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+CONFIGS = ROOT / "configs"
+EXPERIMENTS = sorted(p.stem for p in (CONFIGS / "experiment").glob("*.yaml"))
+
+
+def _compose(*overrides: str):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        return compose("train", overrides=list(overrides))
+
+
+def _tiny(cache: Path, *more: str) -> list[str]:
+    return [
+        "experiment=default",
+        f"dataset.cache_dir={cache}",
+        "dataset.num_sequences=40",
+        "dataset.length=8",
+        "dataset.progress=false",
+        "model.hidden_size=8",
+        "model.num_layers=1",
+        "train.epochs=1",
+        "train.batch_size=16",
+        "train.progress=false",
+        "train.threads=1",
+        "eval.num_sequences=4",
+        "eval.length=16",
+        "eval.skip_steps=2",
+        *more,
+    ]
+
+
+def test_there_are_experiments():
+    assert {"default", "paper_rigid_body"} <= set(EXPERIMENTS)
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_experiment_composes_into_the_schema(name):
+    cfg = _compose(f"experiment={name}")
+    obj = OmegaConf.to_object(cfg)
+    assert isinstance(obj, RunConfig)
+    assert cfg.system._target_ and cfg.name == name
+    assert cfg.model.hidden_size > 0 and cfg.eval.sigmas
+
+
+def test_paper_experiment_has_the_paper_sizes():
+    cfg = _compose("experiment=paper_rigid_body")
+    assert (cfg.model.hidden_size, cfg.model.num_layers) == (512, 2)
+    assert dict(cfg.model.updates) == {"b_omega": "absolute", "b_v": "absolute"}
+    assert (cfg.train.lr, cfg.train.weight_decay) == (3e-4, 0.1)
+    assert (cfg.dataset.num_sequences, cfg.dataset.length, cfg.dataset.sigma) == (20000, 100, 0.0)
+    assert dict(cfg.dataset.splits) == {"train": 0.8, "val": 0.1, "test": 0.1}
+    assert list(cfg.eval.sigmas) == [0.1, 0.2, 0.3, 0.4, 0.5]
+    assert (cfg.eval.num_sequences, cfg.eval.length, cfg.eval.skip_steps) == (1000, 1000, 10)
+
+
+@pytest.mark.parametrize(
+    "override, match",
+    [
+        ("model.hiden_size=64", "hiden_size"),
+        ("train.epochs=ten", "epochs"),
+        ("eval.sigmas=0.1", "sigmas"),
+        ("lr=0.1", "lr"),
+        ("experiment=no_such_experiment", "no_such_experiment"),
+    ],
+)
+def test_typos_and_wrong_types_fail_when_composing(override, match):
+    with pytest.raises(ConfigCompositionException, match=match):
+        _compose(override)
+
+
+def test_keys_appended_with_plus_are_checked_before_any_work(tmp_path):
+    cfg = _compose("+model.dropout=0.1")  # hydra lets an explicit append through...
+    with pytest.raises(ValueError, match="dropout.*not in the schema"):  # ...run() does not
+        run(cfg, tmp_path)
+    assert not (tmp_path / "checkpoints").exists()
+
+
+def test_run_folders_cannot_collide():
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        cfg = compose("train", overrides=["experiment=default"], return_hydra_config=True)
+    run_dir = cfg.hydra.run.dir
+    assert run_dir.startswith("outputs/default/") and run_dir.endswith(f"_{os.getpid()}")
+    assert OmegaConf.to_container(cfg.hydra.sweep)["subdir"] == "${hydra.job.num}"
+
+
+def test_the_whole_command_on_tiny_sizes(tmp_path):
+    cache = tmp_path / "data"
+    metrics = run(_compose(*_tiny(cache)), tmp_path / "run")
+    res = tmp_path / "run" / "results"
+    for name in ("table.csv", "table.md", "metrics.json", "curves.json", "errors_sigma0.1.png"):
+        assert (res / name).is_file(), name
+    (row,) = metrics["table"]
+    assert row["sigma"] == 0.1 and row["steps"] == 16 and row["membership max"] < 1e-12
+    assert {"R est", "R meas", "p est", "p meas", "b_omega est", "b_v est"} <= set(row)
+    assert (tmp_path / "run" / "checkpoints" / "best.pt").is_file()
+    assert json.loads((res / "metrics.json").read_text())["table"] == metrics["table"]
+
+    # evaluating the checkpoint gives the same table, at another sigma too
+    again = run(_compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'run'}")), tmp_path / "ev")
+    assert again["table"][0]["R est"] == pytest.approx(row["R est"], rel=1e-6)
+    other = run(
+        _compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'run'}", "eval.sigma=0.3")),
+        tmp_path / "ev3",
+    )
+    assert other["table"][0]["sigma"] == 0.3 and other["table"][0]["R meas"] > row["R meas"]
+
+    # a checkpoint of another model, a missing checkpoint, a missing dataset: clear errors
+    with pytest.raises(CheckpointError, match="another model.*hidden_size: checkpoint 8, model 16"):
+        run(
+            _compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'run'}", "model.hidden_size=16")),
+            tmp_path / "bad",
+        )
+    with pytest.raises(CheckpointError, match="no best.pt"):
+        run(_compose(*_tiny(cache, f"eval.checkpoint={tmp_path}")), tmp_path / "bad")
+    with pytest.raises(FileNotFoundError, match="no dataset at"):
+        run(_compose(*_tiny(cache, f"data_file={tmp_path / 'none.npz'}")), tmp_path / "bad")
+    with pytest.raises(ValueError, match="model.updates names factors"):
+        run(_compose(*_tiny(cache, "+model.updates.bias=absolute")), tmp_path / "bad")
+
+
+def test_multirun_and_sweep_table(tmp_path):
+    """The real command line: a 2-job multirun into its own folder, then the sweep table."""
+    sweep_dir = tmp_path / "multirun"
+    cmd = [
+        sys.executable,
+        "-m",
+        "manifold_nets.train",
+        "-m",
+        *_tiny(tmp_path / "data"),
+        "seed=0,1",
+        "train.epochs=0",
+        f"hydra.sweep.dir={sweep_dir}",
+    ]
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run(
+        cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=300, check=False
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert (sweep_dir / "0" / "results" / "metrics.json").is_file()
+    assert (sweep_dir / "1" / "results" / "metrics.json").is_file()
+    assert sweep.main([str(sweep_dir)]) == 0
+    text = (sweep_dir / "sweep.md").read_text()
+    assert text.count("\n| ") == 3  # header + 2 jobs
+    summary = (sweep_dir / "sweep_summary.md").read_text()
+    assert "R est mean" in summary and "| 0.1 |" in summary.replace("| 0.1000 |", "| 0.1 |")
+    assert sweep.main([str(tmp_path / "nothing")]) == 1
+
+
+def test_resume_through_the_config(tmp_path):
+    cache = tmp_path / "data"
+    run(_compose(*_tiny(cache, "train.epochs=1")), tmp_path / "first")
+    m = run(
+        _compose(*_tiny(cache, "train.epochs=2", f"train.resume={tmp_path / 'first'}")),
+        tmp_path / "second",
+    )
+    log = json.loads((tmp_path / "second" / "log.json").read_text())
+    assert [r["epoch"] for r in log] == [0, 1, 2]
+    assert m["best_epoch"] in (0, 1, 2)
+    ckpt = torch.load(tmp_path / "second" / "checkpoints" / "last.pt", weights_only=True)
+    assert ckpt["epoch"] == 2 and ckpt["config"]["train"]["epochs"] == 2
+
+
+def test_noise_levels_mix_measurements_per_sequence(tmp_path):
+    from hydra.utils import instantiate
+
+    from manifold_nets.train import load_training_data
+
+    cache = tmp_path / "data"
+    cfg = _compose(*_tiny(cache, "train.noise.levels=[0.0,0.3]"))
+    system = instantiate(cfg.system)
+    mixed = load_training_data(system, cfg)
+    clean = load_training_data(system, _compose(*_tiny(cache, "dataset.sigma=0.0")))
+    noisy = load_training_data(system, _compose(*_tiny(cache, "dataset.sigma=0.3")))
+    for name in ("train", "val", "test"):
+        m, c, n = mixed[name], clean[name], noisy[name]
+        assert torch.equal(m.states, c.states)
+        is_clean = (m.measurements == c.measurements).flatten(1).all(1)
+        is_noisy = (m.measurements == n.measurements).flatten(1).all(1)
+        assert bool((is_clean ^ is_noisy).all())  # every sequence from exactly one level
+    assert 0 < int(is_clean.sum()) < len(is_clean) or len(is_clean) < 4
+    assert mixed["train"].meta["noise_levels"] == [0.0, 0.3]

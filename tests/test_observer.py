@@ -1,0 +1,301 @@
+"""The residual observer: on the group after every step, gradients, rules, stepwise API, errors."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import groups
+from groups import SO3, Euclidean, Product
+from manifold_nets.losses import embedding_mse
+from manifold_nets.observer import GRUCore, RecurrentCore, ResidualObserver, factor_names
+
+SE3 = getattr(groups, "SE3", None)
+if SE3 is None:
+    try:
+        from groups.se3 import SE3
+    except ImportError:  # pragma: no cover - SE(3) not shipped yet
+        SE3 = None
+
+
+def _groups():
+    out = [
+        pytest.param(SO3(), id="SO3"),
+        pytest.param(
+            Product(SO3(), Euclidean(3), Euclidean(2), names=("R", "p", "b")), id="SO3xR3xR2"
+        ),
+        pytest.param(Euclidean(4), id="R4"),
+    ]
+    if SE3 is not None:
+        out += [
+            pytest.param(SE3(), id="SE3"),
+            pytest.param(Product(SE3(), Euclidean(3), names=("T", "b")), id="SE3xR3"),
+        ]
+    return out
+
+
+GROUPS = _groups()
+RIGID = Product(SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "b_omega", "b_v"))
+
+
+def _obs(group, meas=5, hidden=8, layers=2, seed=0, **kw):
+    torch.manual_seed(seed)
+    return ResidualObserver(group, meas, hidden_size=hidden, num_layers=layers, **kw)
+
+
+def _amplify(obs: ResidualObserver, scale: float = 3.0) -> None:
+    """Large outputs: steps of about a radian, to stress the group update."""
+    with torch.no_grad():
+        obs.core.head.weight.mul_(scale)
+        obs.core.head.bias.normal_(0.0, 1.0)
+
+
+@pytest.mark.parametrize("group", GROUPS)
+@pytest.mark.parametrize("state_dtype", [torch.float64, torch.float32])
+def test_estimate_on_group_after_every_step(group, state_dtype):
+    obs = _obs(group, state_dtype=state_dtype)
+    _amplify(obs)
+    y = torch.randn(3, 60, 5, generator=torch.Generator().manual_seed(1)) * 5
+    with torch.no_grad():
+        est = obs(y)
+    assert est.shape == (3, 61, *group.element_shape) and est.dtype == state_dtype
+    err = group.membership_error(est)
+    tol = 1e-12 if state_dtype == torch.float64 else 2e-5
+    assert float(err.max()) <= tol, float(err.max())
+    assert torch.equal(est[:, 0], group.identity((3,), dtype=state_dtype))  # starts at e
+    assert float((est[:, -1] - est[:, 0]).abs().max()) > 0.1  # it moved
+
+
+def test_float64_state_stays_on_group_for_1000_steps_with_float32_net():
+    obs = _obs(RIGID, meas=18)
+    _amplify(obs, 1.0)
+    y = torch.randn(2, 1000, 18, generator=torch.Generator().manual_seed(2))
+    with torch.no_grad():
+        est = obs(y)
+    assert next(obs.parameters()).dtype == torch.float32
+    r = RIGID.get(est[:, -1], "R")
+    eye = torch.eye(3, dtype=torch.float64)
+    assert float(torch.linalg.matrix_norm(r @ r.transpose(-1, -2) - eye).max()) <= 1e-12
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_gradients_reach_every_parameter(group):
+    obs = _obs(group, state_dtype=torch.float64)
+    y = torch.randn(4, 12, 5, generator=torch.Generator().manual_seed(3))
+    target = group.random((4, 13), generator=torch.Generator().manual_seed(4), dtype=torch.float64)
+    embedding_mse(group, obs(y), target).backward()
+    for name, p in obs.named_parameters():
+        assert p.grad is not None, name
+        assert bool(torch.isfinite(p.grad).all()), name
+        assert float(p.grad.abs().max()) > 0, name
+
+
+def test_gradients_finite_at_identity_and_zero_output():
+    """The first step starts at e; a zero head output (exp at 0) must not give NaN gradients."""
+    obs = _obs(RIGID, meas=18)
+    with torch.no_grad():
+        obs.core.head.weight.zero_()
+        obs.core.head.bias.zero_()
+    y = torch.randn(2, 5, 18)
+    loss = embedding_mse(RIGID, obs(y), RIGID.random((2, 6), dtype=torch.float64))
+    loss.backward()
+    for p in obs.parameters():
+        assert bool(torch.isfinite(p.grad).all())
+
+
+def test_gru_core_matches_torch_gru_open_loop():
+    """The core's stepwise torch.gru_cell stack equals nn.GRU + Linear over the same inputs."""
+    torch.manual_seed(0)
+    core = GRUCore(7, 3, hidden_size=6, num_layers=3).double()
+    x = torch.randn(10, 4, 7, dtype=torch.float64)
+    ref, _ = core.gru(x)
+    h = core.initial_hidden(4)
+    outs = []
+    for xt in x:
+        o, h = core.step(xt, h)
+        outs.append(o)
+    torch.testing.assert_close(torch.stack(outs), core.head(ref), rtol=1e-12, atol=1e-12)
+
+
+class ConstantCore(RecurrentCore):
+    """A replaceable core: outputs a fixed tangent vector (and counts its steps)."""
+
+    def __init__(self, input_size, output_size, v):
+        super().__init__()
+        self.input_size, self.output_size = input_size, output_size
+        self.v = torch.nn.Parameter(v.clone())
+
+    def initial_hidden(self, batch, device=None, dtype=None):
+        return (torch.zeros(batch, 1, dtype=self.v.dtype),)
+
+    def step(self, inp, hidden):
+        return self.v.expand(inp.shape[0], -1), (hidden[0] + 1,)
+
+
+def test_update_rules_residual_and_absolute():
+    g = Product(SO3(), Euclidean(3), Euclidean(2), names=("R", "p", "b"))
+    v = torch.tensor([0.1, -0.2, 0.05, 1.0, 2.0, 3.0, -4.0, 5.0], dtype=torch.float64)
+    core = ConstantCore(g.embedding_dim + 2, g.tangent_dim, v)
+    obs = ResidualObserver(g, 2, core=core, update={"b": "absolute"})
+    assert obs.rules == ("residual", "residual", "absolute")
+    est = obs(torch.zeros(1, 4, 2, dtype=torch.float64))
+    for k in range(5):
+        r, p, b = g.split(est[0, k])
+        torch.testing.assert_close(r, SO3().exp(k * v[:3]), rtol=0, atol=1e-14)  # R_k = exp(v)^k
+        torch.testing.assert_close(p, k * v[3:6])  # p_k = p_{k-1} + beta
+        torch.testing.assert_close(
+            b, v[6:] if k else torch.zeros(2, dtype=torch.float64)
+        )  # b = gamma
+
+
+def test_absolute_on_a_non_vector_factor_sets_exp():
+    v = torch.tensor([0.3, -0.1, 0.2], dtype=torch.float64)
+    obs = ResidualObserver(SO3(), 1, core=ConstantCore(10, 3, v), update="absolute")
+    est = obs(torch.zeros(2, 3, 1, dtype=torch.float64))
+    torch.testing.assert_close(est[:, 1:], SO3().exp(v).expand(2, 3, 3, 3))
+
+
+def test_step_api_matches_forward_and_continues():
+    obs = _obs(RIGID, meas=18, update={"b_omega": "absolute", "b_v": "absolute"})
+    y = torch.randn(3, 9, 18, generator=torch.Generator().manual_seed(5))
+    with torch.no_grad():
+        full = obs(y)
+        state = obs.init_state(3)
+        for k in range(9):
+            state = obs.step(state, y[:, k])
+            torch.testing.assert_close(state.estimate, full[:, k + 1], rtol=0, atol=0)
+        head, mid = obs(y[:, :4], return_state=True)
+        tail = obs(y[:, 4:], state=mid)
+    torch.testing.assert_close(torch.cat([head, tail[:, 1:]], 1), full, rtol=0, atol=0)
+
+
+def test_inputs_are_read():
+    obs = _obs(SO3(), meas=2, input_dim=3)
+    y = torch.randn(2, 6, 2)
+    u = torch.randn(2, 6, 3)
+    with torch.no_grad():
+        a, b = obs(y, u), obs(y, u + 1)
+    assert not torch.equal(a, b)
+    with pytest.raises(ValueError, match="reads inputs u of size 3"):
+        obs(y)
+    with pytest.raises(ValueError, match=r"inputs must have shape \(N, T, input_dim\)"):
+        obs(y, u[:, :, :2])
+
+
+def test_signature_names_the_model():
+    sig = _obs(RIGID, meas=18, update={"b_v": "absolute"}).signature()
+    assert sig["core"] == {
+        "type": "GRUCore",
+        "input_size": 36,
+        "output_size": 12,
+        "hidden_size": 8,
+        "num_layers": 2,
+    }
+    assert sig["update"] == ["residual", "residual", "residual", "absolute"]
+    assert factor_names(RIGID) == ("R", "p", "b_omega", "b_v")
+    assert factor_names(SO3()) == ("x",)
+
+
+@pytest.mark.parametrize(
+    "make, match",
+    [
+        (lambda o: o(torch.randn(2, 5, 4)), r"measurement_dim=5\), got \(2, 5, 4\)"),
+        (lambda o: o(torch.randn(5, 5)), r"shape \(N, T, measurement_dim=5\)"),
+        (lambda o: o(torch.randint(0, 3, (2, 5, 5))), "floating-point"),
+        (lambda o: o(torch.full((1, 2, 5), float("nan"))), "NaN or Inf"),
+        (lambda o: o.step(o.init_state(2), torch.randn(2, 4)), r"measurement_dim=5"),
+        (lambda o: o.step(o.init_state(2), torch.randn(3, 5)), "batch of 2"),
+    ],
+)
+def test_bad_input_is_rejected_clearly(make, match):
+    obs = _obs(SO3(), meas=5)
+    with pytest.raises((ValueError, TypeError), match=match):
+        make(obs)
+
+
+def test_bad_construction_is_rejected_clearly():
+    with pytest.raises(ValueError, match="not one of"):
+        ResidualObserver(RIGID, 18, update={"R": "additive"})
+    with pytest.raises(ValueError, match="does not have"):
+        ResidualObserver(RIGID, 18, update={"bias": "absolute"})
+    with pytest.raises(ValueError, match="needs"):
+        ResidualObserver(RIGID, 18, core=GRUCore(30, 12, 4, 1))
+    with pytest.raises(TypeError, match="LieGroup"):
+        ResidualObserver("SO3", 18)
+    with pytest.raises(ValueError, match="measurement_dim"):
+        ResidualObserver(SO3(), 0)
+
+
+class RecordingCore(RecurrentCore):
+    """Outputs zero and records what it reads."""
+
+    def __init__(self, input_size, output_size):
+        super().__init__()
+        self.input_size, self.output_size = input_size, output_size
+        self.w = torch.nn.Parameter(torch.zeros(()))
+        self.seen = []
+
+    def initial_hidden(self, batch, device=None, dtype=None):
+        return ()
+
+    def step(self, inp, hidden):
+        self.seen.append(inp.detach().clone())
+        return inp.new_zeros(inp.shape[0], self.output_size) + self.w, hidden
+
+
+def test_innovation_reads_log_of_estimate_to_measured_factor():
+    g = Product(SO3(), Euclidean(3), names=("R", "p"))
+    meas = 14  # y = (vec R^m, p^m, two more numbers)
+    core = RecordingCore(g.embedding_dim + meas + 6, g.tangent_dim)
+    obs = ResidualObserver(g, meas, core=core, innovation={"R": (0, 9), "p": (9, 12)})
+    rm = SO3().random((2, 3), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
+    pm = torch.randn(2, 3, 3, dtype=torch.float64)
+    y = torch.cat([rm.flatten(-2), pm, torch.randn(2, 3, 2, dtype=torch.float64)], -1)
+    obs(y)  # the estimate stays at the identity (zero output): innovation = log(m)
+    for k, inp in enumerate(core.seen):
+        torch.testing.assert_close(inp[:, 12 + meas : 15 + meas], SO3().log(rm[:, k]).float())
+        torch.testing.assert_close(inp[:, 15 + meas :], pm[:, k].float())
+    assert obs.signature()["innovation"] == {"R": [0, 9], "p": [9, 12]}
+
+
+def test_innovation_observer_on_group_with_gradients():
+    obs = _obs(RIGID, meas=18, innovation={"R": (0, 9)})
+    assert obs.core.input_size == 18 + 18 + 3
+    y = torch.cat(
+        [
+            SO3().random((3, 7), dtype=torch.float64).flatten(-2),
+            torch.randn(3, 7, 9, dtype=torch.float64),
+        ],
+        -1,
+    )
+    est = obs(y)
+    assert float(RIGID.membership_error(est.detach()).max()) < 1e-12
+    embedding_mse(RIGID, est, RIGID.random((3, 8), dtype=torch.float64)).backward()
+    assert all(
+        bool(torch.isfinite(p.grad).all()) and p.grad.abs().max() > 0 for p in obs.parameters()
+    )
+    state = obs.init_state(3)
+    for k in range(7):
+        state = obs.step(state, y[:, k])
+    torch.testing.assert_close(state.estimate, est[:, -1].detach(), rtol=0, atol=1e-12)
+
+
+def test_bad_innovation_is_rejected():
+    with pytest.raises(ValueError, match="does not have"):
+        ResidualObserver(RIGID, 18, innovation={"q": (0, 9)})
+    with pytest.raises(ValueError, match="embedding_dim = 9"):
+        ResidualObserver(RIGID, 18, innovation={"R": (0, 8)})
+    with pytest.raises(ValueError, match="span of y"):
+        ResidualObserver(RIGID, 18, innovation={"p": (16, 19)})
+
+
+@pytest.mark.parametrize("group", GROUPS)
+def test_internal_embed_and_update_match_the_group(group):
+    """The observer's sliced, unchecked embed/update equal the group's own methods."""
+    obs = _obs(group, update="residual")
+    g = torch.Generator().manual_seed(6)
+    x = group.random((4,), generator=g, dtype=torch.float64)
+    v = torch.randn(4, group.tangent_dim, generator=g, dtype=torch.float64)
+    flat = x.reshape(4, -1)
+    torch.testing.assert_close(obs._embed(flat), group.embed(x), rtol=0, atol=0)
+    torch.testing.assert_close(obs._update(flat, v), group.rplus(x, v).reshape(4, -1))

@@ -1,0 +1,209 @@
+"""Training, checkpoints, resume, divergence, noise augmentation and evaluation on tiny data.
+
+The data are synthetic, built with ``groups`` directly: random walks on SO(3) x R^3 with a
+constant R^2 factor, measured as the noisy embedding of the state (no example system needed).
+"""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from groups import SO3, Euclidean, Product
+from manifold_nets.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from manifold_nets.data import TrajectoryDataset
+from manifold_nets.evaluation import evaluate, plot_errors, write_table
+from manifold_nets.observer import ResidualObserver
+from manifold_nets.training import TrainingDiverged, fit, validation_loss
+
+GROUP = Product(SO3(), Euclidean(3), Euclidean(2), names=("R", "p", "b"))
+MEAS = GROUP.embedding_dim  # the measurement is the noisy embedding of the state
+
+
+class EmbeddingSystem:
+    """A toy system: y_{k+1} = embed(x_{k+1}) + noise (rotations by exp, the rest added)."""
+
+    group = GROUP
+    measurement_dim = MEAS
+    input_dim = 0
+    noise_dim = GROUP.tangent_dim
+
+    def apply_noise(self, measurements, noise):
+        x = GROUP.unembed(measurements)
+        return GROUP.embed(GROUP.rplus(x, noise))
+
+    def measurement_errors(self, data):
+        diff = GROUP.embed(GROUP.unembed(data.measurements)) - GROUP.embed(data.states[:, 1:])
+        return {
+            "R": torch.linalg.vector_norm(diff[..., :9], dim=-1),
+            "p": torch.linalg.vector_norm(diff[..., 9:12], dim=-1),
+        }
+
+
+def make_data(n=24, t=12, sigma=0.0, seed=0) -> TrajectoryDataset:
+    g = torch.Generator().manual_seed(seed)
+    x0 = GROUP.random((n,), generator=g, dtype=torch.float64)
+    steps = 0.2 * torch.randn(n, t, GROUP.tangent_dim, generator=g, dtype=torch.float64)
+    steps[..., -2:] = 0  # the "bias" factor is constant
+    xs = [x0]
+    for k in range(t):
+        xs.append(GROUP.rplus(xs[-1], steps[:, k]))
+    states = torch.stack(xs, 1)
+    noise = sigma * torch.randn(n, t, GROUP.tangent_dim, generator=g, dtype=torch.float64)
+    meas = EmbeddingSystem().apply_noise(GROUP.embed(states[:, 1:]), noise)
+    return TrajectoryDataset(
+        states, meas, torch.zeros(n, t, 0, dtype=torch.float64), {"sigma": sigma}
+    )
+
+
+def make_model(seed=0, hidden=16) -> ResidualObserver:
+    torch.manual_seed(seed)
+    return ResidualObserver(GROUP, MEAS, hidden_size=hidden, num_layers=1, update={"b": "absolute"})
+
+
+FIT = {"epochs": 3, "batch_size": 8, "lr": 1e-2, "progress": False, "seed": 7}
+
+
+def test_training_lowers_the_loss(tmp_path):
+    train, val = make_data(32, seed=0), make_data(8, seed=1)
+    model = make_model()
+    res = fit(model, train, val, out_dir=tmp_path, **FIT)
+    losses = [h["val_loss"] for h in res.history]
+    assert len(losses) == 4 and losses[0] == res.history[0]["val_loss"]
+    assert min(losses[1:]) < 0.7 * losses[0], losses
+    assert res.best_val_loss == min(losses)
+    # the logs: one row per epoch (0 = untrained) in CSV and JSON
+    rows = json.loads((tmp_path / "log.json").read_text())
+    assert [r["epoch"] for r in rows] == [0, 1, 2, 3]
+    assert (
+        (tmp_path / "log.csv").read_text().splitlines()[0].startswith("epoch,train_loss,val_loss")
+    )
+    # best.pt holds the best epoch's weights
+    best = load_checkpoint(res.best_path, expected_signature=model.signature())
+    assert best["epoch"] == res.best_epoch
+    fresh = make_model(seed=99)
+    fresh.load_state_dict(best["model"])
+    assert validation_loss(fresh, val) == pytest.approx(res.best_val_loss, rel=1e-6)
+
+
+def test_resume_gives_the_uninterrupted_result(tmp_path):
+    train, val = make_data(24, seed=0), make_data(8, seed=1)
+    noisy = {"noise_sigma": (0.0, 0.3), "system": EmbeddingSystem()}  # RNG state matters too
+    straight = make_model()
+    fit(straight, train, val, out_dir=tmp_path / "a", **FIT, **noisy)
+
+    first = make_model()
+    fit(first, train, val, out_dir=tmp_path / "b", **{**FIT, "epochs": 1}, **noisy)
+    resumed = make_model(seed=123)  # different init: everything must come from the checkpoint
+    res = fit(resumed, train, val, out_dir=tmp_path / "c", resume=tmp_path / "b", **FIT, **noisy)
+
+    for (k, a), b in zip(straight.state_dict().items(), resumed.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, msg=k)
+    a_hist = json.loads((tmp_path / "a" / "log.json").read_text())
+    assert [h["val_loss"] for h in res.history] == [h["val_loss"] for h in a_hist]
+    assert (tmp_path / "c" / "checkpoints" / "best.pt").is_file()
+
+
+def test_checkpoint_round_trip_and_errors(tmp_path):
+    model = make_model()
+    path = save_checkpoint(
+        tmp_path / "m.pt",
+        {
+            "model": model.state_dict(),
+            "signature": model.signature(),
+            "config": {"model": {"hidden_size": 16}},
+            "epoch": 3,
+        },
+    )
+    ckpt = torch.load(path, weights_only=True)  # plain data and tensors only
+    assert ckpt["epoch"] == 3 and ckpt["config"]["model"]["hidden_size"] == 16
+    other = make_model(seed=5)
+    other.load_state_dict(load_checkpoint(path, expected_signature=other.signature())["model"])
+    for a, b in zip(model.parameters(), other.parameters()):
+        assert torch.equal(a, b)
+    assert not list(tmp_path.glob("*.tmp"))  # atomic write left no temporary file
+
+    bigger = make_model(hidden=32)
+    with pytest.raises(
+        CheckpointError, match="another model.*hidden_size: checkpoint 16, model 32"
+    ):
+        load_checkpoint(path, expected_signature=bigger.signature())
+    rigid = ResidualObserver(Product(SO3(), Euclidean(3)), MEAS, hidden_size=16, num_layers=1)
+    with pytest.raises(CheckpointError, match="group"):
+        load_checkpoint(path, expected_signature=rigid.signature())
+    with pytest.raises(CheckpointError, match="no checkpoint at"):
+        load_checkpoint(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(CheckpointError, match="not a loadable checkpoint"):
+        load_checkpoint(tmp_path / "junk.pt")
+    torch.save({"weights": torch.zeros(2)}, tmp_path / "foreign.pt")
+    with pytest.raises(CheckpointError, match="format"):
+        load_checkpoint(tmp_path / "foreign.pt")
+
+
+def test_nan_loss_stops_with_a_clear_message_and_keeps_best(tmp_path):
+    train, val = make_data(16, seed=0), make_data(8, seed=1)
+    train.states[3, 5, 9] = float("nan")  # a corrupt target: the loss of its batch is NaN
+    with pytest.raises(
+        TrainingDiverged, match=r"training loss became nan at epoch 1, batch \d.*best checkpoint"
+    ):
+        fit(make_model(), train, val, out_dir=tmp_path, **{**FIT, "batch_size": 16})
+    assert (tmp_path / "checkpoints" / "best.pt").is_file()
+
+
+def test_noise_augmentation_needs_the_system_hook(tmp_path):
+    train, val = make_data(8), make_data(4, seed=1)
+    with pytest.raises(ValueError, match="apply_noise"):
+        fit(
+            make_model(),
+            train,
+            val,
+            out_dir=tmp_path,
+            noise_sigma=(0.0, 0.2),
+            system=object(),
+            **FIT,
+        )
+    with pytest.raises(ValueError, match="0 <= min <= max"):
+        fit(make_model(), train, val, out_dir=tmp_path, noise_sigma=(0.3, 0.2), **FIT)
+
+
+def test_training_rejects_data_of_another_system(tmp_path):
+    bad = make_data(8)
+    bad = TrajectoryDataset(bad.states, bad.measurements[..., :10], bad.inputs, {})
+    with pytest.raises(ValueError, match="measurements of size 10"):
+        fit(make_model(), bad, make_data(4), out_dir=tmp_path, **FIT)
+
+
+def test_evaluation_table_and_figure(tmp_path):
+    model = make_model()
+    data = make_data(6, t=20, sigma=0.1, seed=3)
+    res = evaluate(model, data, EmbeddingSystem(), skip=5)
+    row = res.row
+    assert row["sigma"] == 0.1 and row["steps"] == 20 and row["sequences"] == 6
+    for key in (
+        "R est",
+        "R meas",
+        "R reduction %",
+        "p est",
+        "p meas",
+        "b est",
+        "membership mean",
+        "membership max",
+    ):
+        assert key in row, key
+    assert row["R reduction %"] == pytest.approx(100 * (1 - row["R est"] / row["R meas"]))
+    assert 0.05 < row["R meas"] < 0.5  # sigma 0.1 on 3 axes: about 0.1 * sqrt(2 * 3) * ...
+    assert row["membership max"] < 1e-12
+    assert res.curves["R est"].shape == (21,) and torch.isnan(res.curves["R meas"][0])
+    # without a system: generic per-factor errors, no measurement columns
+    plain = evaluate(model, data, None, skip=5).row
+    assert plain["R est"] == pytest.approx(row["R est"]) and "R meas" not in plain
+    csv_path, md_path = write_table([row, {**row, "sigma": 0.2}], tmp_path / "table", title="t")
+    assert csv_path.read_text().count("\n") == 3
+    assert "| sigma | R est | R meas | R reduction % |" in md_path.read_text()
+    png = plot_errors(res, tmp_path / "fig.png", title="tiny")
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    with pytest.raises(ValueError, match="skip"):
+        evaluate(model, data, skip=20)
