@@ -18,11 +18,12 @@ interrupted write never leaves a half checkpoint.
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import torch
+
+from .atomic import atomic_open
 
 __all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint", "check_signature"]
 
@@ -39,20 +40,8 @@ def save_checkpoint(path: str | os.PathLike, payload: dict[str, Any]) -> Path:
     for key in ("model", "signature", "config", "epoch"):
         if key not in payload:
             raise ValueError(f"a checkpoint needs the key {key!r}; got {sorted(payload)}.")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save({"format": FORMAT, **payload}, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+    with atomic_open(path, "wb") as f:
+        torch.save({"format": FORMAT, **payload}, f)
     return path
 
 

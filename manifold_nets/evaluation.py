@@ -29,6 +29,7 @@ import torch
 
 from groups import LieGroup, Product
 
+from .atomic import atomic_open, write_text_atomic
 from .data import TrajectoryDataset
 from .observer import ResidualObserver, factor_names
 
@@ -192,12 +193,12 @@ def write_table(
     stem.parent.mkdir(parents=True, exist_ok=True)
     cols = _columns(rows)
     csv_path, md_path = stem.with_suffix(".csv"), stem.with_suffix(".md")
-    with open(csv_path, "w", newline="") as f:
+    with atomic_open(csv_path, "w", newline="") as f:
         w = csv.DictWriter(f, fieldnames=cols)
         w.writeheader()
         w.writerows(rows)
     md = (f"# {title}\n\n" if title else "") + markdown_table(rows, cols)
-    md_path.write_text(md)
+    write_text_atomic(md_path, md)
     return csv_path, md_path
 
 
@@ -243,6 +244,6 @@ def plot_errors(result: EvalResult, path: str | Path, title: str | None = None) 
     if title:
         fig.suptitle(title)
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format=path.suffix.lstrip(".") or "png", dpi=110)
     return path

@@ -42,6 +42,7 @@ from omegaconf import DictConfig, OmegaConf  # noqa: E402
 from groups import Product  # noqa: E402
 
 from . import train_config  # noqa: F401  (registers the schema and the run-id resolver)
+from .atomic import write_text_atomic
 from .checkpoint import load_checkpoint
 from .data import DatasetError, TrajectoryDataset, load_dataset
 from .evaluation import evaluate, plot_errors, write_table
@@ -267,7 +268,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = OmegaConf.to_container(cfg, resolve=True)
-    (out_dir / "config.yaml").write_text(OmegaConf.to_yaml(resolved))
+    write_text_atomic(out_dir / "config.yaml", OmegaConf.to_yaml(resolved))
     sigmas = _sigmas(cfg)  # every check that needs no work, first
     if cfg.train.threads is not None:
         torch.set_num_threads(int(cfg.train.threads))
@@ -369,8 +370,8 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
         )
     _, md_path = write_table(rows, res_dir / "table", title=f"{cfg.name} (seed {cfg.seed})")
     metrics["table"] = rows
-    (res_dir / "metrics.json").write_text(json.dumps(metrics, indent=1, default=str) + "\n")
-    (res_dir / "curves.json").write_text(json.dumps(curves) + "\n")
+    write_text_atomic(res_dir / "metrics.json", json.dumps(metrics, indent=1, default=str) + "\n")
+    write_text_atomic(res_dir / "curves.json", json.dumps(curves) + "\n")
     log.info("results in %s\n%s", res_dir, md_path.read_text())
     return metrics
 

@@ -30,7 +30,6 @@ import json
 import logging
 import math
 import os
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,6 +38,7 @@ from typing import Any
 import torch
 from tqdm.auto import tqdm
 
+from .atomic import write_text_atomic
 from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from .data import TrajectoryDataset
 from .losses import embedding_mse
@@ -77,20 +77,13 @@ def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:
     return p
 
 
-def _write_atomic(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
-
-
 def _write_logs(out_dir: Path, history: list[dict]) -> None:
     buf = io.StringIO()
     w = csv.DictWriter(buf, fieldnames=_LOG_FIELDS, extrasaction="ignore")
     w.writeheader()
     w.writerows(history)
-    _write_atomic(out_dir / "log.csv", buf.getvalue())
-    _write_atomic(out_dir / "log.json", json.dumps(history, indent=1) + "\n")
+    write_text_atomic(out_dir / "log.csv", buf.getvalue())
+    write_text_atomic(out_dir / "log.json", json.dumps(history, indent=1) + "\n")
 
 
 def _batches(data: TrajectoryDataset, idx: torch.Tensor):
