@@ -28,6 +28,7 @@ baseline) and ``drive_from_measurement`` (the drive as read, for dead reckoning)
 from __future__ import annotations
 
 import abc
+import math
 
 import torch
 
@@ -36,10 +37,30 @@ from groups import LieGroup, Product
 from .data import TrajectoryDataset, check_positive_int, check_sigma
 from .progress import progress
 
-__all__ = ["System"]
+__all__ = ["System", "check_last_dim", "check_number"]
 
 _DTYPE = torch.float64
 _MEASURE_CHUNK = 1 << 17  # (sequence, step) pairs measured at once: small temporaries are faster
+
+
+def check_last_dim(owner: str, t: torch.Tensor, size: int, what: str) -> None:
+    """Raises a ValueError naming ``owner`` unless ``t`` is a tensor of shape ``(*batch, size)``.
+
+    For system authors: validate the arguments of ``step``/``measure`` with one line.
+    """
+    if not isinstance(t, torch.Tensor) or t.dim() < 1 or t.shape[-1] != size:
+        shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
+        raise ValueError(f"{owner} expects the {what} of shape (*batch, {size}), got {shape}.")
+
+
+def check_number(owner: str, name: str, value: object, positive: bool = False) -> float:
+    """``value`` as a float, or a ValueError unless it is finite and ``>= 0`` (``> 0`` if
+    ``positive``). For system authors validating their constructor's parameters."""
+    ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
+    if not ok or value < 0 or (positive and value == 0):
+        rel = "> 0" if positive else ">= 0"
+        raise ValueError(f"{owner}: {name} must be a finite number {rel}, got {value!r}.")
+    return float(value)
 
 
 class System(abc.ABC):

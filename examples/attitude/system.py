@@ -40,13 +40,14 @@ reckoning reads the drive as the biased gyro (:meth:`Attitude.drive_from_measure
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
 
 from groups import SO3, Euclidean, Product
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.system import System
+from manifold_nets.system import System, check_last_dim, check_number
 
 from .motion import check_frequencies, random_sinusoids
 from .triad import triad
@@ -62,18 +63,10 @@ GRAVITY = (0.0, 0.0, -1.0)
 MAGNETIC = (0.0, 0.5, -math.sqrt(3.0) / 2)  # north, 60 deg below the horizon
 
 
-def _check_last(t: torch.Tensor, size: int, what: str) -> None:
-    if not isinstance(t, torch.Tensor) or t.dim() < 1 or t.shape[-1] != size:
-        shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
-        raise ValueError(f"Attitude expects the {what} of shape (*batch, {size}), got {shape}.")
+_check_last = functools.partial(check_last_dim, "Attitude")
 
 
-def _number(name: str, value, positive: bool = False) -> float:
-    ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
-    if not ok or value < 0 or (positive and value == 0):
-        rel = "> 0" if positive else ">= 0"
-        raise ValueError(f"Attitude: {name} must be a finite number {rel}, got {value!r}.")
-    return float(value)
+_number = functools.partial(check_number, "Attitude")
 
 
 def _vector(name: str, value) -> tuple[float, float, float]:

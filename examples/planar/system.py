@@ -52,6 +52,7 @@ course over ground (the direction from the previous fix to the current one) for 
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -59,7 +60,7 @@ import torch
 from examples.attitude.motion import check_frequencies, random_sinusoids
 from groups import SE2, SO2, Euclidean, Product
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.system import System
+from manifold_nets.system import System, check_last_dim, check_number
 
 __all__ = ["POSE_GROUPS", "Planar", "course_over_ground"]
 
@@ -71,18 +72,10 @@ _SE2 = SE2()
 _DEG = 180.0 / math.pi
 
 
-def _check_last(t: torch.Tensor, size: int, what: str) -> None:
-    if not isinstance(t, torch.Tensor) or t.dim() < 1 or t.shape[-1] != size:
-        shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
-        raise ValueError(f"Planar expects the {what} of shape (*batch, {size}), got {shape}.")
+_check_last = functools.partial(check_last_dim, "Planar")
 
 
-def _number(name: str, value, positive: bool = False) -> float:
-    ok = not isinstance(value, bool) and isinstance(value, (int, float)) and math.isfinite(value)
-    if not ok or value < 0 or (positive and value == 0):
-        rel = "> 0" if positive else ">= 0"
-        raise ValueError(f"Planar: {name} must be a finite number {rel}, got {value!r}.")
-    return float(value)
+_number = functools.partial(check_number, "Planar")
 
 
 def _wrap(angle: torch.Tensor) -> torch.Tensor:

@@ -24,6 +24,7 @@ observer that integrates the biased reading never wraps the exponential.
 
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -31,7 +32,7 @@ import torch
 from groups import SO3, Euclidean, Product
 
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.system import System
+from manifold_nets.system import System, check_last_dim
 
 from .kinematics import (
     exact_rollout_time_major,
@@ -54,10 +55,7 @@ def _cat(*parts: torch.Tensor) -> torch.Tensor:
     return torch.cat([q.expand(*batch, q.shape[-1]) for q in parts], dim=-1)
 
 
-def _check_last(t: torch.Tensor, size: int, what: str) -> None:
-    if not isinstance(t, torch.Tensor) or t.dim() < 1 or t.shape[-1] != size:
-        shape = tuple(t.shape) if isinstance(t, torch.Tensor) else type(t).__name__
-        raise ValueError(f"RigidBody expects the {what} of shape (*batch, {size}), got {shape}.")
+_check_last = functools.partial(check_last_dim, "RigidBody")
 
 
 def _check_nonneg(name: str, value: float) -> float:
