@@ -21,7 +21,9 @@ What a :class:`~manifold_nets.system.System` must provide:
 
 from __future__ import annotations
 
-from typing import Protocol, runtime_checkable
+import inspect
+from collections.abc import Callable
+from typing import Any, Protocol, runtime_checkable
 
 import torch
 
@@ -29,7 +31,7 @@ from groups import LieGroup
 
 from .data import TrajectoryDataset
 
-__all__ = ["DeadReckoning", "Estimator", "RawMeasurement"]
+__all__ = ["DeadReckoning", "Estimator", "RawMeasurement", "make_estimator"]
 
 
 @runtime_checkable
@@ -90,3 +92,52 @@ class DeadReckoning:
         for k in range(1, t):
             est[:, k + 1] = s.step(est[:, k], s.drive_from_measurement(y[:, k], u[:, k]))
         return est
+
+
+def _takes_sigma(factory: Callable[..., Any]) -> bool:
+    try:
+        params = inspect.signature(factory).parameters.values()
+    except (TypeError, ValueError):  # no signature (a builtin): call it without sigma
+        return False
+    return any(p.name == "sigma" or p.kind is p.VAR_KEYWORD for p in params)
+
+
+def make_estimator(
+    system, method: str | Callable[..., Any], sigma: float, **params: Any
+) -> Estimator:
+    """The estimator ``method`` of ``system`` for data of noise level ``sigma``.
+
+    ``method`` is a name of ``system.estimators()`` (``raw``, ``dead_reckoning``, ``ekf``, ...)
+    or a factory; the factory is called as ``factory(system, sigma=sigma, **params)``, without
+    ``sigma`` when it takes none (a model-free baseline). The result must be an
+    :class:`Estimator` on the system's group.
+    """
+    if isinstance(method, str):
+        table = system.estimators()
+        if method not in table:
+            raise ValueError(
+                f"method={method!r}: {type(system).__name__} has no estimator of that name; it "
+                f"has {sorted(table)} (System.estimators()), besides the learned observer "
+                "(learned, untrained). Or set method.target to the dotted path of a factory "
+                "(system, sigma=..., **params) -> Estimator."
+            )
+        factory = table[method]
+    else:
+        factory = method
+    try:
+        est = factory(system, sigma=sigma, **params) if _takes_sigma(factory) else factory(
+            system, **params
+        )
+    except TypeError as err:
+        raise TypeError(f"method {method!r} with params {params}: {err}") from None
+    if not isinstance(est, Estimator):
+        raise TypeError(
+            f"method {method!r} made a {type(est).__name__}, not an Estimator (name, group, "
+            "estimate(data))."
+        )
+    if tuple(est.group.element_shape) != tuple(system.group.element_shape):
+        raise ValueError(
+            f"method {method!r} estimates elements of shape {tuple(est.group.element_shape)}, "
+            f"the system's states are {tuple(system.group.element_shape)}."
+        )
+    return est

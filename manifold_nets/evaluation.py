@@ -1,16 +1,19 @@
 """Evaluation on noisy inference sets: the paper's table (per sigma) and figure, for any system.
 
-For one inference set (``N`` sequences of ``T`` steps at noise ``sigma``) :func:`evaluate` rolls
-the observer out from the identity and reports, over the steps ``k = skip .. T`` (the paper
-skips the first 10):
+For one inference set (``N`` sequences of ``T`` steps at noise ``sigma``) :func:`evaluate` runs
+an estimator over it (the observer's rollout from the identity, or any
+:class:`~manifold_nets.baselines.Estimator`: a baseline, a classical filter) and reports, over
+the steps ``k = skip .. T`` (the paper skips the first 10):
 
 * per factor, the mean error of the estimate, ``||pi_f(xhat_k) - pi_f(x_k)||`` (the Frobenius
   norm of the embedding difference; ``||Rhat - R||_F`` for SO(3)), from ``system.metrics``
   (the hook may add named metrics of its own);
 * per measured factor, the mean error of the raw measurement (``system.measurement_errors``,
   e.g. ``||R^m - R||_F``) and the reduction ``100 (1 - est / meas)`` %;
-* the distance of the estimate from the group, ``group.membership_error`` (for SO(3)
-  ``max(||R R^T - I||_F, |det R - 1|)``), mean and max.
+* the distance of the estimate from the group, ``group.membership_error`` of the *system's*
+  group when a system is given (for SO(3) ``max(||R R^T - I||_F, |det R - 1|)``), mean and
+  max: an estimator that works off the group (the unconstrained ablation) shows it here;
+* the wall time of the estimation, ``seconds``.
 
 :func:`write_table` writes rows as CSV and Markdown; :func:`plot_errors` draws the paper's
 figure (mean error against time per factor, estimate and measurement, and the distance from
@@ -35,6 +38,7 @@ from .observer import ResidualObserver, factor_names
 
 __all__ = [
     "EvalResult",
+    "ObserverEstimator",
     "rollout",
     "factor_errors",
     "evaluate",
@@ -77,6 +81,18 @@ def rollout(
     return torch.cat(out)
 
 
+class ObserverEstimator:
+    """The learned observer as an :class:`~manifold_nets.baselines.Estimator`: its rollout from
+    the identity over whole datasets, in chunks of ``batch_size`` sequences."""
+
+    def __init__(self, model: ResidualObserver, name: str = "learned", batch_size: int = 500):
+        self.model, self.name, self.batch_size = model, name, batch_size
+        self.group = model.group
+
+    def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
+        return rollout(self.model, data, self.batch_size)
+
+
 def factor_errors(
     group: LieGroup, estimates: torch.Tensor, states: torch.Tensor
 ) -> dict[str, torch.Tensor]:
@@ -98,7 +114,7 @@ def _pad_front(t: torch.Tensor, length: int) -> torch.Tensor:
 
 
 def evaluate(
-    model: ResidualObserver,
+    method,
     data: TrajectoryDataset,
     system=None,
     *,
@@ -106,21 +122,39 @@ def evaluate(
     batch_size: int = 500,
     estimates: torch.Tensor | None = None,
 ) -> EvalResult:
-    """The table row and curves of ``model`` on ``data`` (see the module docstring).
+    """The table row and curves of ``method`` on ``data`` (see the module docstring).
 
-    ``system`` (a :class:`manifold_nets.system.System`) supplies ``metrics`` and
-    ``measurement_errors``; without one the per-factor errors are computed from the group and
-    there is no measurement column. ``estimates`` skips the rollout when already computed.
+    ``method`` is a :class:`~manifold_nets.observer.ResidualObserver` (rolled out in chunks of
+    ``batch_size`` sequences) or any :class:`~manifold_nets.baselines.Estimator`. ``system`` (a
+    :class:`manifold_nets.system.System`) supplies ``metrics``, ``measurement_errors`` and the
+    group the estimates should lie on; without one the per-factor errors are computed from the
+    estimator's group and there is no measurement column. ``estimates`` skips the estimation
+    when already computed (``seconds`` is then 0).
     """
     import time
 
+    from .baselines import Estimator
+
+    if isinstance(method, ResidualObserver):
+        method = ObserverEstimator(method, batch_size=batch_size)
+    if not isinstance(method, Estimator):
+        raise TypeError(
+            f"evaluate needs a ResidualObserver or an Estimator (name, group, estimate(data)), "
+            f"got {type(method).__name__}."
+        )
     n, t = len(data), data.length
     if not 0 <= skip < t:
         raise ValueError(f"skip={skip} must be in [0, T) for sequences of T={t} steps.")
     t0 = time.perf_counter()
-    est = rollout(model, data, batch_size) if estimates is None else estimates
-    seconds = time.perf_counter() - t0
-    group = model.group
+    est = method.estimate(data) if estimates is None else estimates
+    seconds = time.perf_counter() - t0 if estimates is None else 0.0
+    expected = (n, t + 1, *method.group.element_shape)
+    if tuple(est.shape) != expected:
+        raise ValueError(
+            f"{method.name}: estimates of shape {tuple(est.shape)}, expected {expected} "
+            "(x_0 .. x_T of every sequence)."
+        )
+    group = system.group if system is not None else method.group
     states = data.states.to(est.dtype)
     if system is not None and callable(getattr(system, "metrics", None)):
         est_err = dict(system.metrics(est, data))

@@ -23,12 +23,16 @@ Optional hooks for classical filters and baselines (:mod:`manifold_nets.ekf`,
 :mod:`manifold_nets.baselines`): ``measurement_residual`` (how a measurement is compared with a
 predicted one; default the plain difference), ``state_from_measurement`` (the raw-measurement
 baseline) and ``drive_from_measurement`` (the drive as read, for dead reckoning).
+:meth:`System.estimators` names the classical estimators a system offers, which hydra's
+``method=<name>`` selects.
 """
 
 from __future__ import annotations
 
 import abc
 import math
+from collections.abc import Callable
+from typing import Any
 
 import torch
 
@@ -279,6 +283,21 @@ class System(abc.ABC):
             f"(input_dim={self.input_dim}); override drive_from_measurement(y, u) to say how the "
             f"drive is read from the measurement and input (e.g. velocity readings in y)."
         )
+
+    def estimators(self) -> dict[str, Callable[..., Any]]:
+        """The classical estimators of this system by name: ``{name: factory}``.
+
+        A factory is called as ``factory(system, sigma=sigma, **params)`` (``sigma`` only when it
+        takes one: the noise level of the data, which a model-based filter is told) and returns a
+        :class:`manifold_nets.baselines.Estimator`. ``python -m manifold_nets.train method=<name>``
+        evaluates it in place of the learned observer. Default: ``raw`` and ``dead_reckoning``
+        (:mod:`manifold_nets.baselines`; they need ``state_from_measurement`` and
+        ``drive_from_measurement``). A system with filters of its own adds them (the rigid body:
+        ``ekf``, ``complementary``).
+        """
+        from .baselines import DeadReckoning, RawMeasurement
+
+        return {"raw": RawMeasurement, "dead_reckoning": DeadReckoning}
 
     def measurement_errors(self, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """Errors of the raw measurements against the true states, ``{name: (N, T)}``.

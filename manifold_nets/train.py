@@ -10,6 +10,14 @@ per sigma and writes everything into its own run folder::
     python -m manifold_nets.train -m experiment=default eval.checkpoint=<run>/checkpoints/best.pt \
         eval.sigma=0.1,0.2,0.3,0.4,0.5
     python -m manifold_nets.sweep multirun/default/<run id>     # one table for a sweep
+    python -m manifold_nets.train experiment=default method=ekf  # a baseline, same evaluation
+    python -m manifold_nets.compare outputs/default multirun/...  # methods side by side
+
+``method=`` (``configs/method/``) picks what produces the estimates: ``learned`` (default: train
+the observer, or evaluate ``eval.checkpoint``), ``untrained`` (the observer at its seeded
+initialisation), or a classical estimator of the system (``System.estimators()``: ``raw``,
+``dead_reckoning``, ``ekf``, ``complementary``, ...; no training). Every method goes through
+the same inference sets, metrics, table and figures.
 
 A run folder (``outputs/<name>/<date_time_pid>/``, or ``multirun/<name>/<date_time_pid>/<job>/``)
 holds ``config.yaml`` (resolved), ``log.csv``/``log.json`` (per epoch), ``checkpoints/best.pt``
@@ -36,22 +44,27 @@ from typing import Any
 # imports torch first (the command line); an OMP_WAIT_POLICY set by the user wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-import torch  # noqa: E402
-from omegaconf import DictConfig, OmegaConf  # noqa: E402
+import torch
+from omegaconf import DictConfig, OmegaConf
 
-from groups import Product  # noqa: E402
+from groups import Product
 
 from . import train_config  # noqa: F401  (registers the schema and the run-id resolver)
 from .atomic import write_text_atomic
+from .baselines import make_estimator
 from .checkpoint import load_checkpoint
 from .data import DatasetError, TrajectoryDataset, load_dataset
-from .evaluation import evaluate, plot_errors, write_table
+from .evaluation import ObserverEstimator, evaluate, plot_errors, write_table
 from .generate import DatasetConfig, load_or_generate
 from .observer import GRUCore, RecurrentCore, ResidualObserver, factor_names
+from .relax import relax
 from .train_config import DTYPES, RunConfig
 from .training import fit, resolve_checkpoint, validation_loss
 
-__all__ = ["build_observer", "resolve_device", "check_config", "run", "main"]
+__all__ = ["LEARNED_METHODS", "build_observer", "check_config", "main", "resolve_device", "run"]
+
+#: The methods that are the residual observer (``method.name``); any other is an estimator.
+LEARNED_METHODS = ("learned", "untrained")
 
 log = logging.getLogger(__name__)
 
@@ -76,7 +89,11 @@ def _innovation_factors(group, innovation: dict) -> list:
 
 
 def build_observer(group, measurement_dim: int, input_dim: int, mcfg: Any) -> ResidualObserver:
-    """The observer of a ``model`` config (:class:`~manifold_nets.train_config.ModelConfig`)."""
+    """The observer of a ``model`` config (:class:`~manifold_nets.train_config.ModelConfig`).
+
+    ``group`` is the system's; ``model.relax`` takes factors off it (:func:`~manifold_nets.relax.relax`).
+    """
+    group = relax(group, list(mcfg.relax))
     innovation = {k: list(v) for k, v in dict(mcfg.innovation).items()}
     in_size = (
         group.embedding_dim
@@ -118,6 +135,28 @@ def build_observer(group, measurement_dim: int, input_dim: int, mcfg: Any) -> Re
         state_dtype=_dtype(mcfg.state_dtype, "model.state_dtype"),
     )
     return model.to(_dtype(mcfg.net_dtype, "model.net_dtype"))
+
+
+def _method_factory(system, meth: Any):
+    """The estimator factory of a non-learned ``method`` config (checked before any work)."""
+    if meth.target:
+        from hydra.utils import get_object
+
+        try:
+            return get_object(meth.target)
+        except Exception as err:
+            raise ValueError(
+                f"method.target={meth.target!r} could not be imported ({err}); give the dotted "
+                "path of a factory (system, sigma=..., **params) -> Estimator."
+            ) from None
+    table = system.estimators()
+    if meth.name not in table:
+        raise ValueError(
+            f"method={meth.name!r}: {type(system).__name__} has no estimator of that name; the "
+            f"methods are {list(LEARNED_METHODS)} (the observer) and {sorted(table)} "
+            "(System.estimators()); or set method.target to the dotted path of a factory."
+        )
+    return table[meth.name]
 
 
 def resolve_device(name: str) -> torch.device:
@@ -278,17 +317,36 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
 
     system = instantiate(cfg.system)
     _check_system(system)
-    torch.manual_seed(int(cfg.seed))
-    model = build_observer(system.group, system.measurement_dim, system.input_dim, cfg.model).to(
-        device
-    )
-    log.info(
-        "observer: %s, %d parameters", model.signature(), sum(p.numel() for p in model.parameters())
-    )
-
-    metrics: dict[str, Any] = {"name": cfg.name, "seed": int(cfg.seed), "out_dir": str(out_dir)}
-    parts = None
-    if cfg.eval.checkpoint:
+    meth = cfg.method
+    label = meth.label or meth.name
+    learned = meth.name in LEARNED_METHODS and not meth.target
+    metrics: dict[str, Any] = {
+        "name": cfg.name,
+        "method": label,
+        "seed": int(cfg.seed),
+        "skip_steps": int(cfg.eval.skip_steps),
+        "out_dir": str(out_dir),
+    }
+    if not learned:
+        factory = _method_factory(system, meth)  # fails before any work for an unknown method
+        metrics["method_params"] = dict(meth.params)
+    elif meth.name == "untrained" and cfg.eval.checkpoint:
+        raise ValueError(
+            "method=untrained evaluates the observer at its initialisation; it cannot load "
+            f"eval.checkpoint={cfg.eval.checkpoint!r} (use method=learned for that)."
+        )
+    model = None
+    if learned:
+        torch.manual_seed(int(cfg.seed))
+        model = build_observer(
+            system.group, system.measurement_dim, system.input_dim, cfg.model
+        ).to(device)
+        log.info(
+            "observer: %s, %d parameters",
+            model.signature(),
+            sum(p.numel() for p in model.parameters()),
+        )
+    if learned and cfg.eval.checkpoint:
         path = resolve_checkpoint(_abs(cfg.eval.checkpoint), name="best.pt")
         ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=device)
         model.load_state_dict(ckpt["model"])
@@ -298,7 +356,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
             best_val_loss=ckpt.get("best", {}).get("val_loss"),
         )
         log.info("evaluating %s (epoch %s)", path, ckpt["epoch"])
-    else:
+    elif meth.name == "learned" and learned:
         parts = load_training_data(system, cfg)
         t = cfg.train
         t0 = time.perf_counter()
@@ -345,13 +403,17 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
     rows, curves = [], {}
     for sigma in sigmas:
         data = load_inference_data(system, cfg, sigma)
-        r = evaluate(
-            model, data, system, skip=cfg.eval.skip_steps, batch_size=cfg.train.eval_batch_size
-        )
+        if learned:
+            est = ObserverEstimator(model, label, cfg.train.eval_batch_size)
+        else:
+            est = make_estimator(system, factory, sigma, **dict(meth.params))
+        r = evaluate(est, data, system, skip=cfg.eval.skip_steps)
         r.row = {
             "sigma": sigma,
+            "method": label,
             **{k: v for k, v in r.row.items() if k != "sigma"},
             "seconds": r.seconds,
+            "us/step": 1e6 * r.seconds / (len(data) * data.length),
         }
         rows.append(r.row)
         curves[f"{sigma:g}"] = {
@@ -361,14 +423,16 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
             plot_errors(
                 r,
                 res_dir / f"errors_sigma{sigma:g}.png",
-                title=f"{cfg.name}: sigma = {sigma:g}, {len(data)} x {data.length} steps",
+                title=f"{cfg.name}, {label}: sigma = {sigma:g}, {len(data)} x {data.length} steps",
             )
         log.info(
             "sigma %g: %s",
             sigma,
             {k: (float(f"{v:.4g}") if isinstance(v, float) else v) for k, v in r.row.items()},
         )
-    _, md_path = write_table(rows, res_dir / "table", title=f"{cfg.name} (seed {cfg.seed})")
+    _, md_path = write_table(
+        rows, res_dir / "table", title=f"{cfg.name}, method {label} (seed {cfg.seed})"
+    )
     metrics["table"] = rows
     write_text_atomic(res_dir / "metrics.json", json.dumps(metrics, indent=1, default=str) + "\n")
     write_text_atomic(res_dir / "curves.json", json.dumps(curves) + "\n")

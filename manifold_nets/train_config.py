@@ -23,6 +23,7 @@ from omegaconf import MISSING, OmegaConf
 from .generate import DatasetConfig
 
 __all__ = [
+    "MethodConfig",
     "ModelConfig",
     "NoiseConfig",
     "TrainSettings",
@@ -53,6 +54,10 @@ class ModelConfig:
     #: where ``y[start:stop]`` is that factor's measured embedding, e.g. ``{R: [0, 9], p: [9, 12]}``
     #: for the rigid body; the core also reads ``log(xhat_f^-1 m_f)`` per factor.
     innovation: dict[str, list[int]] = field(default_factory=dict)
+    #: Factors taken off their group (an ablation): each named factor is replaced by the vector
+    #: space of its embedding (``manifold_nets.relax``), so with ``updates: {R: absolute}`` the
+    #: core predicts ``vec R`` directly, unconstrained. Empty: the observer of the paper.
+    relax: list[str] = field(default_factory=list)
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
     state_dtype: str = "float64"
     #: dtype of the network's parameters.
@@ -126,8 +131,31 @@ class EvalConfig:
 
 
 @dataclass
+class MethodConfig:
+    """What produces the estimates (``configs/method/``): the learned observer or a baseline.
+
+    Every method runs through the same evaluation (the same inference sets, metrics, table and
+    figures), so runs with different ``method=`` compare row by row
+    (``python -m manifold_nets.compare``).
+    """
+
+    #: ``learned``: train the observer (or load ``eval.checkpoint``) and evaluate it;
+    #: ``untrained``: the observer at its seeded initialisation, no training (an ablation);
+    #: any other name: an estimator of the system, ``system.estimators()[name]`` (``raw``,
+    #: ``dead_reckoning`` for every system; ``ekf``, ``complementary`` where the system has them).
+    name: str = "learned"
+    #: The dotted path of an estimator factory ``(system, sigma=..., **params) -> Estimator`` for
+    #: one the system does not list; ``name`` is then only its label.
+    target: Optional[str] = None
+    #: Keyword arguments of the estimator factory (e.g. ``{init_steps: 0}`` for the rigid body's EKF).
+    params: dict[str, Any] = field(default_factory=dict)
+    #: The label of its rows in tables and comparisons (default: ``name``).
+    label: Optional[str] = None
+
+
+@dataclass
 class RunConfig:
-    """The whole run: ``system`` x ``dataset`` x ``model`` x ``train`` x ``eval`` and a seed."""
+    """The whole run: ``system`` x ``dataset`` x ``model`` x ``train`` x ``eval`` x ``method``, a seed."""
 
     #: The system: ``_target_`` (e.g. ``examples.rigid_body.system.RigidBody``) and its parameters.
     system: Any = MISSING
@@ -138,6 +166,7 @@ class RunConfig:
     model: ModelConfig = field(default_factory=ModelConfig)
     train: TrainSettings = field(default_factory=TrainSettings)
     eval: EvalConfig = field(default_factory=EvalConfig)
+    method: MethodConfig = field(default_factory=MethodConfig)
     #: Seed of the model's initialisation, the batch order and the training noise.
     seed: int = 0
     #: Experiment name: the first level of the output folders.

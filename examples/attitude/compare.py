@@ -36,12 +36,13 @@ import torch
 from omegaconf import OmegaConf
 
 from manifold_nets.checkpoint import load_checkpoint
+from manifold_nets.compare import plot_comparison
 from manifold_nets.evaluation import rollout, write_table
 from manifold_nets.train import build_observer, load_inference_data
 from manifold_nets.train_config import RunConfig
 from manifold_nets.training import resolve_checkpoint
 
-__all__ = ["compare_run", "load_run", "main", "plot_comparison"]
+__all__ = ["compare_run", "load_run", "main"]
 
 #: ``estimators(system, sigma) -> [Estimator, ...]`` (each with ``name`` and ``estimate(data)``).
 EstimatorFactory = Callable[[object, float], Sequence[object]]
@@ -133,44 +134,6 @@ def compare_run(
     title = f"{cfg.name}: learned observer and baselines, {len(data)} x {data.length} steps"
     write_table(rows, out / stem, title=title)
     return rows
-
-
-def plot_comparison(curves: dict, skip: int, path: str | Path, title: str | None = None) -> Path:
-    """Mean error against the step, one panel per metric, one line per method (PNG, Agg)."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    metrics = list(next(iter(curves.values())))
-    cols = 2 if len(metrics) > 1 else 1
-    rows = math.ceil(len(metrics) / cols)
-    fig = Figure(figsize=(5.0 * cols, 3.0 * rows), layout="constrained")
-    FigureCanvasAgg(fig)
-    for i, metric in enumerate(metrics):
-        ax = fig.add_subplot(rows, cols, i + 1)
-        tops = []
-        for j, (method, c) in enumerate(curves.items()):
-            if metric in c:
-                y = c[metric][skip:]
-                ax.plot(torch.arange(skip, skip + len(y)), y, lw=1.0, color=f"C{j}", label=method)
-                tops.append(float(y.nan_to_num(0.0).max()))
-        tops.sort()
-        mid = tops[len(tops) // 2] if tops else 0.0
-        if mid > 0 and tops[-1] > 4 * mid:  # one method far off: keep the others readable
-            ax.set_ylim(0, 2 * mid)
-            ax.set_title(f"{metric} (axis clipped)")
-        else:
-            ax.set_ylim(bottom=0)
-            ax.set_title(metric)
-        ax.set_xlabel("step k")
-        ax.set_ylabel("mean error")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    if title:
-        fig.suptitle(title)
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    return path
 
 
 def main(estimators: EstimatorFactory, argv: Sequence[str] | None = None) -> list[dict]:

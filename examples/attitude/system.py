@@ -236,6 +236,13 @@ class Attitude(System):
         out["attitude_deg"] = _SO3.distance(Rhat, R) * _DEG
         return out
 
+    def estimators(self) -> dict:
+        """``raw``, ``dead_reckoning`` and ``ekf`` (:class:`~.filters.AttitudeEKF`: the AHRS's
+        error-state EKF with the true model and noise level), for ``method=<name>``."""
+        from .filters import AttitudeEKF
+
+        return {**super().estimators(), "ekf": AttitudeEKF}
+
     def measurement_errors(self, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """TRIAD from the raw directions against the truth, ``(N, T)`` each: ``R``
         (``||R_triad - R||_F``) and ``attitude_deg`` (its rotation angle in degrees)."""

@@ -303,6 +303,13 @@ class Planar(System):
         out["heading_deg"] = _wrap(self.heading(estimates) - self.heading(states)).abs() * _DEG
         return out
 
+    def estimators(self) -> dict:
+        """``raw``, ``dead_reckoning`` and ``ekf`` (:class:`~.filters.PlanarEKF`: the vehicle's
+        error-state EKF with the true model and noise level), for ``method=<name>``."""
+        from .filters import PlanarEKF
+
+        return {**super().estimators(), "ekf": PlanarEKF}
+
     def measurement_errors(self, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """The raw baselines, ``(N, T)`` each: ``position_m``, the fix's error, and
         ``heading_deg``, the course over ground's (:func:`course_over_ground`; needs ``T >= 2``)."""

@@ -42,6 +42,7 @@ a grid search on a validation set simulated in code (its own seed, never the inf
 from __future__ import annotations
 
 import itertools
+import logging
 import math
 from dataclasses import asdict, dataclass
 
@@ -49,7 +50,6 @@ import torch
 
 from groups import SO3
 from groups.so3 import left_jacobian, left_jacobian_inverse, skew, unskew
-
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.ekf import FilterModel
 
@@ -66,6 +66,19 @@ __all__ = [
 ]
 
 _SO3 = SO3()
+log = logging.getLogger(__name__)
+
+
+def _check_system(system, who: str) -> None:
+    """The filters here work on the paper's layout ``(vec R, p, b_Omega, b_v)`` only."""
+    if not isinstance(system, RigidBody):
+        raise TypeError(f"{who} needs a RigidBody, got {type(system).__name__}.")
+    if system.pose_group != "so3_r3":
+        raise ValueError(
+            f"{who} works on the paper's group SO(3) x R^3 x R^3 x R^3 (pose_group='so3_r3'); "
+            f"this RigidBody has pose_group={system.pose_group!r}. Filter the so3_r3 system (the "
+            "same data) and compare through System.metrics."
+        )
 
 
 def _check_sigma(sigma: float) -> float:
@@ -147,8 +160,7 @@ class RigidBodyFilterModel(FilterModel):
     def __init__(
         self, system: RigidBody, sigma: float, rotation_std: float = math.pi / math.sqrt(3)
     ):
-        if not isinstance(system, RigidBody):
-            raise TypeError(f"RigidBodyFilterModel needs a RigidBody, got {type(system).__name__}.")
+        _check_system(system, "RigidBodyFilterModel")
         self.system = system
         self.sigma = _check_sigma(sigma)
         if not rotation_std > 0:
@@ -361,11 +373,18 @@ class ComplementaryFilter:
     name = "complementary"
 
     def __init__(self, system: RigidBody, gains: ComplementaryGains | None = None):
-        if not isinstance(system, RigidBody):
-            raise TypeError(f"ComplementaryFilter needs a RigidBody, got {type(system).__name__}.")
+        _check_system(system, "ComplementaryFilter")
         self.system = system
         self.group = system.group
         self.gains = gains or ComplementaryGains()
+
+    @classmethod
+    def tuned(cls, system: RigidBody, sigma: float, **search) -> ComplementaryFilter:
+        """The filter with its gains chosen for ``sigma`` by :func:`tune_complementary_gains`
+        (keyword arguments go to the search); what ``method=complementary`` runs."""
+        gains, _ = tune_complementary_gains(system, _check_sigma(sigma), **search)
+        log.info("complementary filter, sigma %g: gains %s", sigma, gains)
+        return cls(system, gains)
 
     def filter(self, measurements: torch.Tensor, gains: dict | None = None) -> torch.Tensor:
         """Estimates ``(N, T+1, 18)`` from ``measurements`` ``(N, T, 18)``.

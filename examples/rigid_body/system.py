@@ -1,7 +1,23 @@
 """The paper's rigid body (its Section 3) as a :class:`manifold_nets.system.System`.
 
-State ``x = (R, p, b_Omega, b_v)`` on ``SO(3) x R^3 x R^3 x R^3``, stored flat as the ``(18,)``
-vector ``(vec R row-major, p, b_Omega, b_v)``, which is also its embedding. Kinematics
+State ``x = (R, p, b_Omega, b_v)``: attitude, world-frame position and the two turn-on biases.
+Two groups for the same state (``pose_group``):
+
+* ``"so3_r3"`` (default, the paper's): ``Product(SO3(), Euclidean(3), Euclidean(3),
+  Euclidean(3), names=("R", "p", "b_omega", "b_v"))``, stored flat as the ``(18,)`` vector
+  ``(vec R row-major, p, b_Omega, b_v)``, which is also its embedding. The direct product: an
+  observer's update moves the position by addition in the world frame.
+* ``"se3"``: ``Product(SE3(), Euclidean(3), Euclidean(3), names=("T", "b_omega", "b_v"))``,
+  stored as the ``(22,)`` vector ``(vec T row-major (16), b_Omega, b_v)`` with the homogeneous
+  ``T = [[R, p], [0, 1]]``. The pose on SE(3): an observer's update ``T exp(xi)`` moves the
+  position in the body frame (through SO(3)'s left Jacobian).
+
+Both embed a state as the same ``(vec R, p, b_Omega, b_v)`` in ``R^18`` (SE(3)'s embedding is
+``(vec R, p)``), so the first 12 entries of a measurement are the measured pose's embedding in
+either; one seed gives the same motion and the same measurements for both, and
+:meth:`RigidBody.metrics` has the keys ``R``, ``p``, ``b_omega``, ``b_v`` for both. Everything
+that reads a state goes through :meth:`RigidBody.rotation`, :meth:`~RigidBody.position`,
+:meth:`~RigidBody.biases` and :meth:`~RigidBody.join`. Kinematics
 ``dR/dt = R [Omega]x``, ``dp/dt = R v`` with the body velocities ``Omega, v ~ U[-1, 1]^3`` drawn
 at every step and held over it (the drive ``w_k = (Omega_k, v_k)``, ``drive_dim = 6``); the
 turn-on biases are constant over a sequence.
@@ -16,6 +32,8 @@ Measurement ``y_{k+1} = (vec R^m_{k+1}, p^m_{k+1}, Omega^m_k, v^m_k)`` in ``R^18
 ``R^m = R exp([w1]x)``, ``p^m = p + w2``, ``Omega^m = Omega + b_Omega + w3``,
 ``v^m = v + b_v + w4``, ``w_i ~ N(0, sigma^2 I_3)`` (``noise_dim = 12``): the velocity reading in
 ``y_{k+1}`` is the one applied over the step ``k -> k+1``. No control input (``input_dim = 0``).
+:meth:`RigidBody.apply_noise` applies ``(w1, w2, w3, w4)`` to noise-free measurements (what
+noise-augmented training uses); ``measure(x, w, n)`` is ``apply_noise(measure(x, w), n)``.
 
 ``dt = 0.1`` s by default (the paper states none): the largest measured rate
 ``|Omega + b_Omega| <= sqrt(3) * 11`` then turns by at most 1.9 rad < pi in a step, so an
@@ -29,8 +47,7 @@ import math
 
 import torch
 
-from groups import SO3, Euclidean, Product
-
+from groups import SE3, SO3, Euclidean, Product
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.system import System, check_last_dim
 
@@ -42,7 +59,10 @@ from .kinematics import (
     time_major,
 )
 
-__all__ = ["RigidBody"]
+__all__ = ["POSE_GROUPS", "RigidBody"]
+
+#: The groups a rigid-body state can live on; see the module docstring. The first is the default.
+POSE_GROUPS = ("so3_r3", "se3")
 
 _DTYPE = torch.float64
 _SO3 = SO3()
@@ -71,7 +91,7 @@ class RigidBody(System):
     measurement_dim = 18
     input_dim = 0
     drive_dim = 6
-    noise_dim = 12
+    noise_dim = 12  # (w1, w2, w3, w4), 3 each
 
     def __init__(
         self,
@@ -83,6 +103,7 @@ class RigidBody(System):
         bias_range: float = 10.0,
         omega_range: float = 1.0,
         velocity_range: float = 1.0,
+        pose_group: str = "so3_r3",
     ):
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt < math.inf:
             raise ValueError(
@@ -97,6 +118,12 @@ class RigidBody(System):
         for name, tol in (("rtol", rtol), ("atol", atol)):
             if isinstance(tol, bool) or not isinstance(tol, (int, float)) or not tol > 0:
                 raise ValueError(f"RigidBody: {name} must be > 0, got {tol!r}.")
+        if pose_group not in POSE_GROUPS:
+            raise ValueError(
+                f"RigidBody: pose_group must be one of {POSE_GROUPS} (so3_r3: the paper's direct "
+                f"product SO(3) x R^3, position updated by addition in the world frame; se3: the "
+                f"pose in SE(3), body-frame update), got {pose_group!r}."
+            )
         self.dt = float(dt)
         self.integrator = integrator
         self.rtol, self.atol = float(rtol), float(atol)
@@ -104,9 +131,15 @@ class RigidBody(System):
         self.bias_range = _check_nonneg("bias_range", bias_range)
         self.omega_range = _check_nonneg("omega_range", omega_range)
         self.velocity_range = _check_nonneg("velocity_range", velocity_range)
-        self.group = Product(
-            SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "b_omega", "b_v")
-        )
+        self.pose_group = pose_group
+        self._se3 = pose_group == "se3"
+        if self._se3:
+            self.group = Product(SE3(), Euclidean(3), Euclidean(3), names=("T", "b_omega", "b_v"))
+        else:
+            self.group = Product(
+                SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "b_omega", "b_v")
+            )
+        self._state_dim = self.group.element_shape[0]  # 18 or 22
 
     def config(self) -> dict:
         cfg = {
@@ -119,18 +152,69 @@ class RigidBody(System):
         }
         if self.integrator == "rk45":  # the tolerances only matter to RK45
             cfg.update(rtol=self.rtol, atol=self.atol)
+        if self.pose_group != POSE_GROUPS[0]:  # so the default's cached datasets keep their hash
+            cfg["pose_group"] = self.pose_group
         return cfg
+
+    # ------------------------------------------------------------------ the state's layout
+
+    def _check_state(self, x: torch.Tensor, where: str) -> None:
+        _check_last(x, self._state_dim, f"state ({self.pose_group} layout) given to {where}")
+
+    def rotation(self, x: torch.Tensor) -> torch.Tensor:
+        """The attitude ``R`` ``(*batch, 3, 3)`` of states ``x`` ``(*batch, *element_shape)``
+        (a view; no membership check)."""
+        self._check_state(x, "rotation")
+        if self._se3:
+            return x[..., :12].unflatten(-1, (3, 4))[..., :3]
+        return x[..., :9].unflatten(-1, (3, 3))
+
+    def position(self, x: torch.Tensor) -> torch.Tensor:
+        """The world-frame position ``p`` ``(*batch, 3)`` of states ``x`` (a view)."""
+        self._check_state(x, "position")
+        return x[..., 3:12:4] if self._se3 else x[..., 9:12]
+
+    def biases(self, x: torch.Tensor) -> torch.Tensor:
+        """The biases ``(b_Omega, b_v)`` ``(*batch, 6)`` of states ``x`` (a view)."""
+        self._check_state(x, "biases")
+        return x[..., -6:]
+
+    def join(self, R: torch.Tensor, p: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+        """The flat state ``(*batch, *element_shape)`` from ``R`` ``(*batch, 3, 3)``, ``p``
+        ``(*batch, 3)`` and ``b = (b_Omega, b_v)`` ``(*batch, 6)`` (batch dimensions broadcast).
+        """
+        if not isinstance(R, torch.Tensor) or R.dim() < 2 or R.shape[-2:] != (3, 3):
+            shape = tuple(R.shape) if isinstance(R, torch.Tensor) else type(R).__name__
+            raise ValueError(f"RigidBody.join expects R of shape (*batch, 3, 3), got {shape}.")
+        _check_last(p, 3, "position p")
+        _check_last(b, 6, "biases (b_Omega, b_v)")
+        if not self._se3:
+            return _cat(R.flatten(-2), p, b)
+        batch = torch.broadcast_shapes(R.shape[:-2], p.shape[:-1], b.shape[:-1])
+        top = torch.cat((R.expand(*batch, 3, 3), p.expand(*batch, 3).unsqueeze(-1)), dim=-1)
+        bottom = torch.tensor((0.0, 0.0, 0.0, 1.0), dtype=top.dtype, device=top.device)
+        return torch.cat(
+            (top.flatten(-2), bottom.expand(*batch, 4), b.expand(*batch, 6).to(top)), dim=-1
+        )
+
+    def _pose_embedding(self, x: torch.Tensor) -> torch.Tensor:
+        """``(vec R, p)`` ``(*batch, 12)``: the measured part of ``y`` (both groups' embedding)."""
+        if self._se3:
+            T = x[..., :12].unflatten(-1, (3, 4))
+            return torch.cat((T[..., :3].flatten(-2), T[..., 3]), dim=-1)
+        return x[..., :12]
 
     # ------------------------------------------------------------------ random laws
 
     def sample_initial_state(self, num_sequences: int, generator: torch.Generator) -> torch.Tensor:
-        """``(N, 18)``: Haar ``R_0``, ``p_0 ~ U[-a, a]^3``, ``(b_Omega, b_v) ~ U[-b, b]^6``."""
+        """``(N, *element_shape)``: Haar ``R_0``, ``p_0 ~ U[-a, a]^3``, ``(b_Omega, b_v) ~
+        U[-b, b]^6`` (the same draws for every ``pose_group``)."""
         R = _SO3.random((num_sequences,), generator=generator, dtype=_DTYPE)
         p = torch.empty(num_sequences, 3, dtype=_DTYPE)
         p.uniform_(-self.position_range, self.position_range, generator=generator)
         b = torch.empty(num_sequences, 6, dtype=_DTYPE)
         b.uniform_(-self.bias_range, self.bias_range, generator=generator)
-        return torch.cat((R.flatten(-2), p, b), dim=-1)
+        return self.join(R, p, b)
 
     def sample_drive(
         self, num_sequences: int, length: int, generator: torch.Generator
@@ -153,55 +237,77 @@ class RigidBody(System):
     def step(self, x: torch.Tensor, drive: torch.Tensor, dt: float | None = None) -> torch.Tensor:
         """The exact step: ``R' = R exp(Omega dt)``, ``p' = p + R J_l(Omega dt) v dt``, biases kept.
 
-        ``x`` ``(*batch, 18)``, ``drive`` ``(*batch, 6)``; differentiable (an EKF can linearise it).
+        ``x`` ``(*batch, *element_shape)``, ``drive`` ``(*batch, 6)``; differentiable (an EKF can
+        linearise it). The same motion for both layouts (on SE(3) it is ``T exp((v, Omega) dt)``).
         """
         self.group._check_element(x, "step")
         _check_last(drive, 6, "drive (Omega, v)")
         dt = self.dt if dt is None else dt
-        R, p = x[..., :9].unflatten(-1, (3, 3)), x[..., 9:12]
-        R1, p1 = exact_step(R, p, drive[..., :3], drive[..., 3:], dt)
-        return _cat(R1.flatten(-2), p1, x[..., 12:])
+        R1, p1 = exact_step(self.rotation(x), self.position(x), drive[..., :3], drive[..., 3:], dt)
+        return self.join(R1, p1, self.biases(x))
+
+    def _time_major_pose(self, buf: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Views ``R`` ``(T+1, 3, 3, N)`` and ``p`` ``(T+1, 3, N)`` of a ``(T+1, d, N)`` buffer."""
+        if self._se3:
+            T = buf[:, :12].unflatten(1, (3, 4))
+            return T[:, :, :3], T[:, :, 3]
+        return buf[:, :9].unflatten(1, (3, 3)), buf[:, 9:12]
 
     def rollout(
         self, x0: torch.Tensor, drive: torch.Tensor, show_progress: bool = False
     ) -> torch.Tensor:
-        """``(N, T+1, 18)``; exact: the closed form over all sequences at once; rk45: solve_ivp."""
+        """``(N, T+1, *element_shape)``; exact: the closed form over all sequences at once, in a
+        time-major buffer of the state's own layout; rk45: solve_ivp."""
         n, t = drive.shape[:2]
-        R0, p0 = x0[:, :9].unflatten(-1, (3, 3)), x0[:, 9:12]
+        d = self._state_dim
         if self.integrator == "rk45":
             R, p = rk45_rollout(
-                R0, p0, drive[..., :3], drive[..., 3:], self.dt, self.rtol, self.atol,
-                project=True, show_progress=show_progress,
+                self.rotation(x0), self.position(x0), drive[..., :3], drive[..., 3:], self.dt,
+                self.rtol, self.atol, project=True, show_progress=show_progress,
             )
-            return torch.cat((R.flatten(-2), p, x0[:, None, 12:].expand(n, t + 1, 6)), dim=-1)
-        # time- and component-major work buffer (T+1, 18, N), transposed into place once
-        buf = x0.new_empty(t + 1, 18, n)
+            return self.join(R, p, self.biases(x0)[:, None].expand(n, t + 1, 6))
+        # time- and component-major work buffer (T+1, d, N), transposed into place once
+        buf = x0.new_empty(t + 1, d, n)
         buf[0] = x0.transpose(0, 1)
-        buf[1:, 12:] = x0[:, 12:].transpose(0, 1)  # the biases are constant
+        buf[1:, d - 6 :] = x0[:, d - 6 :].transpose(0, 1)  # the biases are constant
+        if self._se3:  # the bottom row of T
+            buf[1:, 12:15] = 0.0
+            buf[1:, 15] = 1.0
         w = drive.permute(1, 2, 0)  # (T, 6, N)
         if not w.is_contiguous():
             w = time_major(drive)
-        exact_rollout_time_major(
-            w[:, :3], w[:, 3:], self.dt, buf[:, :9].unflatten(1, (3, 3)), buf[:, 9:12],
-            show_progress=show_progress,
-        )
-        return sequence_major_into(buf, x0.new_empty(n, t + 1, 18))
+        R, p = self._time_major_pose(buf)
+        exact_rollout_time_major(w[:, :3], w[:, 3:], self.dt, R, p, show_progress=show_progress)
+        return sequence_major_into(buf, x0.new_empty(n, t + 1, d))
 
     # ------------------------------------------------------------------ measurements
 
     def measure(
         self, x: torch.Tensor, drive: torch.Tensor, noise: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """``(vec R exp([w1]x), p + w2, Omega + b_Omega + w3, v + b_v + w4)``, ``(*batch, 18)``."""
+        """``(vec R exp([w1]x), p + w2, Omega + b_Omega + w3, v + b_v + w4)``, ``(*batch, 18)``.
+
+        With noise it is :meth:`apply_noise` of the noise-free measurement.
+        """
         self.group._check_element(x, "measure")
         _check_last(drive, 6, "drive (Omega, v)")
-        rates = drive + x[..., 12:]  # Omega + b_Omega, v + b_v
-        if noise is None:
-            return _cat(x[..., :12], rates)
+        y = _cat(self._pose_embedding(x), drive + self.biases(x))  # rates Omega + b_Omega, v + b_v
+        return y if noise is None else self.apply_noise(y, noise)
+
+    def apply_noise(self, measurements: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """Noise-free measurements ``(*batch, 18)`` with ``noise = (w1, w2, w3, w4)``
+        ``(*batch, 12)`` (already times sigma) applied: ``(vec(R^m exp([w1]x)), p^m + w2,
+        Omega^m + w3, v^m + w4)``, ``(*batch, 18)`` (batch dimensions broadcast, dtypes promote).
+
+        ``measure(x, w, n)`` is ``apply_noise(measure(x, w), n)``. Used by noise-augmented
+        training (``train.noise.sigma_max > 0``).
+        """
+        _check_last(measurements, 18, "measurements")
         _check_last(noise, 12, "noise (w1, w2, w3, w4)")
-        R = x[..., :9].unflatten(-1, (3, 3))
-        Rm = (R @ _SO3.exp(noise[..., :3])).flatten(-2)
-        return _cat(Rm, x[..., 9:12] + noise[..., 3:6], rates + noise[..., 6:])
+        dtype = torch.promote_types(measurements.dtype, noise.dtype)
+        y, w = measurements.to(dtype), noise.to(dtype)
+        Rm = (y[..., :9].unflatten(-1, (3, 3)) @ _SO3.exp(w[..., :3])).flatten(-2)
+        return _cat(Rm, y[..., 9:] + w[..., 3:])
 
     def measurement_residual(self, y: torch.Tensor, y_hat: torch.Tensor) -> torch.Tensor:
         """``(log(Rhat^T R^m), p^m - phat, Omega^m - Omegahat^m, v^m - vhat^m)``, ``(*batch, 12)``.
@@ -216,20 +322,57 @@ class RigidBody(System):
         Rhat = y_hat[..., :9].unflatten(-1, (3, 3))
         return _cat(_SO3.log(Rhat.transpose(-1, -2) @ Rm), y[..., 9:] - y_hat[..., 9:])
 
+    # ------------------------------------------------------------------ evaluation
+
     def state_from_measurement(self, y: torch.Tensor) -> torch.Tensor:
-        """``(R^m, p^m, 0, 0)``, ``(*batch, 18)``: the measured pose; the biases are not measured."""
+        """``(R^m, p^m, 0, 0)``, ``(*batch, *element_shape)``: the measured pose; the biases are
+        not measured."""
         _check_last(y, 18, "measurement")
-        return torch.cat((y[..., :12], torch.zeros_like(y[..., 12:])), dim=-1)
+        R = y[..., :9].unflatten(-1, (3, 3))
+        return self.join(R, y[..., 9:12], torch.zeros_like(y[..., 12:]))
 
     def drive_from_measurement(self, y: torch.Tensor, u: torch.Tensor) -> torch.Tensor:
-        """The velocity readings ``(Omega^m_k, v^m_k)`` of ``y_{k+1}``, biases and noise included."""
+        """The velocity readings ``(Omega^m_k, v^m_k)`` of ``y_{k+1}``, with biases and noise."""
         _check_last(y, 18, "measurement")
         return y[..., 12:]
 
+    def metrics(self, estimates: torch.Tensor, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
+        """``R`` (``||Rhat - R||_F``), ``p`` (``||phat - p||``), ``b_omega``, ``b_v`` (vector
+        norms), each ``(N, T')``, for either ``pose_group``. Estimates need not be on the group.
+
+        For ``so3_r3`` these are :meth:`System.metrics`'s per-factor embedding errors; for
+        ``se3`` the ``T`` factor's error is split into ``R`` and ``p``.
+        """
+        out = super().metrics(estimates, data)  # checks the shapes
+        if not self._se3:
+            return out
+        states = data.states.to(dtype=estimates.dtype, device=estimates.device)
+        if estimates.shape[1] == states.shape[1] - 1:
+            states = states[:, 1:]
+        diff = self._pose_embedding(estimates) - self._pose_embedding(states)
+        return {
+            "R": torch.linalg.vector_norm(diff[..., :9], dim=-1),
+            "p": torch.linalg.vector_norm(diff[..., 9:], dim=-1),
+            "b_omega": out["b_omega"],
+            "b_v": out["b_v"],
+        }
+
+    def estimators(self) -> dict:
+        """``raw``, ``dead_reckoning`` and, on the paper's group (``pose_group='so3_r3'``), ``ekf``
+        (:class:`~.filters.RigidBodyEKF`, the true model and noise level) and ``complementary``
+        (:meth:`~.filters.ComplementaryFilter.tuned`, gains searched per sigma), for
+        ``method=<name>``."""
+        out = super().estimators()
+        if self.pose_group == "so3_r3":
+            from .filters import ComplementaryFilter, RigidBodyEKF
+
+            out.update(ekf=RigidBodyEKF, complementary=ComplementaryFilter.tuned)
+        return out
+
     def measurement_errors(self, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """``||R^m - R||_F`` and ``||p^m - p||`` per step, ``(N, T)`` each: the paper's baseline."""
-        x, y = data.states[:, 1:], data.measurements
+        pose, y = self._pose_embedding(data.states[:, 1:]), data.measurements
         return {
-            "R": torch.linalg.vector_norm(y[..., :9] - x[..., :9], dim=-1),
-            "p": torch.linalg.vector_norm(y[..., 9:12] - x[..., 9:12], dim=-1),
+            "R": torch.linalg.vector_norm(y[..., :9] - pose[..., :9], dim=-1),
+            "p": torch.linalg.vector_norm(y[..., 9:12] - pose[..., 9:], dim=-1),
         }
