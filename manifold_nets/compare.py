@@ -124,18 +124,11 @@ def comparison_rows(runs: Sequence[dict], reference: str = "ekf") -> list[dict]:
 
 def plot_vs_sigma(rows: Sequence[dict], path: str | Path, title: str | None = None) -> Path:
     """Each metric against sigma, one line per method (log scale); ratio rows are left out."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     rows = [r for r in rows if " / " not in r["method"]]
     metrics = [c for c in _columns(rows) if c not in _NOT_METRICS and c != "us/step"]
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    cols = 2 if len(metrics) > 1 else 1
-    nrows = math.ceil(len(metrics) / cols)
-    fig = Figure(figsize=(5.0 * cols, 3.2 * nrows), layout="constrained")
-    FigureCanvasAgg(fig)
-    for i, metric in enumerate(metrics):
-        ax = fig.add_subplot(nrows, cols, i + 1)
+    fig, axes = _panels(len(metrics), height=3.2)
+    for metric, ax in zip(metrics, axes):
         for j, method in enumerate(methods):
             pts = [
                 (r["sigma"], r[metric])
@@ -171,18 +164,11 @@ def plot_comparison(
     a method far above the others (4x the median of the panel) gets the axis clipped so the
     others stay readable.
     """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
     metrics: list[str] = []
     for c in curves.values():
         metrics += [m for m in c if m not in metrics]
-    cols = 2 if len(metrics) > 1 else 1
-    nrows = math.ceil(len(metrics) / cols)
-    fig = Figure(figsize=(5.0 * cols, 3.0 * nrows), layout="constrained")
-    FigureCanvasAgg(fig)
-    for i, metric in enumerate(metrics):
-        ax = fig.add_subplot(nrows, cols, i + 1)
+    fig, axes = _panels(len(metrics), height=3.0)
+    for metric, ax in zip(metrics, axes):
         tops = []
         for j, (method, c) in enumerate(curves.items()):
             if metric in c:
@@ -212,6 +198,18 @@ def plot_comparison(
     if title:
         fig.suptitle(title)
     return _save(fig, path)
+
+
+def _panels(n: int, height: float):
+    """A figure (Agg canvas, no display) with ``n`` panels in two columns, and the axes."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    cols = 2 if n > 1 else 1
+    nrows = math.ceil(n / cols)
+    fig = Figure(figsize=(5.0 * cols, height * nrows), layout="constrained")
+    FigureCanvasAgg(fig)
+    return fig, [fig.add_subplot(nrows, cols, i + 1) for i in range(n)]
 
 
 def _columns(rows: Sequence[dict]) -> list[str]:

@@ -407,6 +407,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
             est = ObserverEstimator(model, label, cfg.train.eval_batch_size)
         else:
             est = make_estimator(system, factory, sigma, **dict(meth.params))
+            metrics.setdefault("estimators", {})[f"{sigma:g}"] = repr(est)
         r = evaluate(est, data, system, skip=cfg.eval.skip_steps)
         r.row = {
             "sigma": sigma,

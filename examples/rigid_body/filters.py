@@ -330,6 +330,12 @@ class RigidBodyEKF:
         self.init_steps = init_steps
         self.seconds = 0.0  # wall time of the last estimate's filter loop
 
+    def __repr__(self) -> str:
+        return (
+            f"RigidBodyEKF(sigma={self.model.sigma:g}, jacobians={self.ekf.jacobians!r}, "
+            f"init_steps={self.init_steps})"
+        )
+
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
         y = data.measurements
         m = self.init_steps
@@ -422,6 +428,10 @@ class ComplementaryFilter:
             x = torch.cat((R.flatten(-2), p, b_omega, b_v), dim=-1)
             est[:, k + 1] = x
         return est
+
+    def __repr__(self) -> str:
+        g = self.gains
+        return f"ComplementaryFilter(k_P={g.k_P:g}, k_I={g.k_I:g}, k_p={g.k_p:g}, k_b={g.k_b:g})"
 
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
         """Estimates ``(N, T+1, 18)`` on ``data`` with ``self.gains``."""
