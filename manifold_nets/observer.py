@@ -36,6 +36,13 @@ tangent vector ``rminus(m_f, xhat_f) = log(xhat_f^-1 · m_f)`` from the estimate
 factor ``m_f = unembed(y[a:b])``: the innovation of a classical observer, which turns the
 nonlinear comparison of two embedded elements into an input the network can use linearly.
 
+Optional relative-only factors (an extension; needs the innovation of those factors):
+``relative_only=["p"]`` leaves the absolute estimate and measurement of the factor ``p`` out of
+the core's input; the core sees the factor only through its innovation ``p^m - phat``. For the
+rigid body, whose motion does not depend on where it is, the observer is then invariant to
+translations of the whole trajectory, so it does not leave the range of positions it was
+trained on when it runs longer than the training sequences.
+
 The core is replaceable: any :class:`RecurrentCore` (``initial_hidden`` and ``step``) works;
 :class:`GRUCore` is the paper's (GRU 36 -> 512, GRU 512 -> 512, Linear 512 -> 12 for the rigid
 body, sizes and layer count configurable).
@@ -56,6 +63,7 @@ from groups import Euclidean, LieGroup, Product
 
 __all__ = [
     "UPDATE_RULES",
+    "core_input_size",
     "RecurrentCore",
     "GRUCore",
     "ObserverState",
@@ -315,6 +323,58 @@ def _parse_innovation(group, measurement_dim, innovation) -> dict[str, tuple[int
     return out
 
 
+def _parse_relative(group, innovation, relative_only) -> tuple[str, ...]:
+    """The relative-only factor names, each checked to have an innovation span."""
+    names = tuple(relative_only or ())
+    for name in names:
+        if name not in factor_names(group):
+            raise ValueError(
+                f"relative_only names a factor {name!r} that {group!r} does not have; its "
+                f"factors are {list(factor_names(group))}."
+            )
+        if name not in innovation:
+            raise ValueError(
+                f"relative_only factor {name!r} has no innovation span: the core would not see "
+                "it at all. Add it to innovation ({name: [start, stop]} in y) or drop it."
+            )
+    return names
+
+
+def _kept_columns(group, context_dim, innovation, relative) -> tuple:
+    """Index tensors of the embedding and (y, u) columns the core reads (``None``: all)."""
+    if not relative:
+        return None, None
+    emb = torch.ones(group.embedding_dim, dtype=torch.bool)
+    ctx = torch.ones(context_dim, dtype=torch.bool)
+    for name in relative:
+        if isinstance(group, Product):
+            emb[group.embedding_slice(factor_names(group).index(name))] = False
+        else:
+            emb[:] = False
+        a, b = innovation[name]
+        ctx[a:b] = False
+    return emb.nonzero().flatten(), ctx.nonzero().flatten()
+
+
+def core_input_size(
+    group: LieGroup,
+    measurement_dim: int,
+    input_dim: int = 0,
+    innovation: Mapping[str, Sequence[int]] | None = None,
+    relative_only: Sequence[str] = (),
+) -> int:
+    """The size of what the core reads per step: ``embed(xhat)``, ``y`` and ``u`` (less the
+    relative-only columns) and the innovation's tangent vectors. Checks the arguments."""
+    innov = _parse_innovation(group, measurement_dim, innovation)
+    relative = _parse_relative(group, innov, relative_only)
+    emb, ctx = _kept_columns(group, measurement_dim + input_dim, innov, relative)
+    return (
+        (group.embedding_dim if emb is None else len(emb))
+        + (measurement_dim + input_dim if ctx is None else len(ctx))
+        + sum(_factor(group, name).tangent_dim for name in innov)
+    )
+
+
 # ---------------------------------------------------------------------- the observer
 
 
@@ -341,6 +401,8 @@ class ResidualObserver(nn.Module):
         innovation: ``{factor name: (start, stop)}``: ``y[..., start:stop]`` is the embedding
             of that factor, measured; the core also reads ``rminus(m_f, xhat_f)`` per factor
             (see the module docstring). ``None`` (default): the paper's inputs.
+        relative_only: factor names (each with an ``innovation`` span) whose absolute estimate
+            and measurement the core does not read (see the module docstring).
         state_dtype: dtype of the group state (float64 default); the network keeps its own.
     """
 
@@ -355,6 +417,7 @@ class ResidualObserver(nn.Module):
         num_layers: int = 2,
         update: str | Mapping | Sequence | None = None,
         innovation: Mapping[str, Sequence[int]] | None = None,
+        relative_only: Sequence[str] = (),
         state_dtype: torch.dtype = torch.float64,
     ):
         super().__init__()
@@ -386,7 +449,16 @@ class ResidualObserver(nn.Module):
             for name, (a, b) in self.innovation.items()
         ]
         innov_dim = sum(f.tangent_dim for f, _, _ in self._innov)
-        in_size = group.embedding_dim + measurement_dim + input_dim + innov_dim
+        self.relative_only = _parse_relative(group, self.innovation, relative_only)
+        keep_embedding, keep_context = _kept_columns(
+            group, measurement_dim + input_dim, self.innovation, self.relative_only
+        )
+        # column indices of embed(x) and of (y, u) that the core reads; None: all of them
+        self.register_buffer("_keep_embedding", keep_embedding, persistent=False)
+        self.register_buffer("_keep_context", keep_context, persistent=False)
+        emb_dim = group.embedding_dim if keep_embedding is None else len(keep_embedding)
+        ctx_dim = measurement_dim + input_dim if keep_context is None else len(keep_context)
+        in_size = emb_dim + ctx_dim + innov_dim
         if core is None:
             core = GRUCore(in_size, group.tangent_dim, hidden_size, num_layers)
         if not isinstance(core, RecurrentCore):
@@ -394,9 +466,10 @@ class ResidualObserver(nn.Module):
         if core.input_size != in_size or core.output_size != group.tangent_dim:
             raise ValueError(
                 f"core maps {core.input_size} -> {core.output_size}, but the observer needs "
-                f"embedding_dim + measurement_dim + input_dim + innovation = {group.embedding_dim}"
-                f" + {measurement_dim} + {input_dim} + {innov_dim} = {in_size} -> tangent_dim = "
-                f"{group.tangent_dim}."
+                f"embedding + measurement and input + innovation = {emb_dim} + {ctx_dim} + "
+                f"{innov_dim} = {in_size} -> tangent_dim = {group.tangent_dim}"
+                + (f" (relative_only {list(self.relative_only)} left out)." if
+                   self.relative_only else ".")
             )
         self.core = core
 
@@ -412,7 +485,7 @@ class ResidualObserver(nn.Module):
 
     def signature(self) -> dict:
         """What a checkpoint must match to load into this observer (JSON-able)."""
-        return {
+        sig = {
             "group": repr(self.group),
             "measurement_dim": self.measurement_dim,
             "input_dim": self.input_dim,
@@ -420,6 +493,9 @@ class ResidualObserver(nn.Module):
             "innovation": {k: list(v) for k, v in self.innovation.items()},
             "core": self.core.signature(),
         }
+        if self.relative_only:  # only when used: older checkpoints keep matching
+            sig["relative_only"] = list(self.relative_only)
+        return sig
 
     def extra_repr(self) -> str:
         return (
@@ -469,10 +545,13 @@ class ResidualObserver(nn.Module):
         """One unchecked step.
 
         ``x``: the flat state ``(B, numel)`` in the state dtype; ``context``: ``(B, l + m)`` in the
-        network dtype; ``measured``: the step's measured factor elements (innovation only).
+        network dtype (less the relative-only columns); ``measured``: the step's measured factor elements (innovation only).
         """
         net = context.dtype
-        parts = [self._embed(x).to(net), context]
+        e = self._embed(x)
+        if self._keep_embedding is not None:
+            e = e.index_select(-1, self._keep_embedding)
+        parts = [e.to(net), context]
         for (f, xs, _), m in zip(self._innov, measured):
             parts.append(f.rminus(m, x[:, xs].unflatten(-1, f.element_shape)).to(net))
         v, hidden = self.core.step(torch.cat(parts, dim=-1), hidden)
@@ -530,6 +609,8 @@ class ResidualObserver(nn.Module):
         context = torch.cat([p.to(device=dev, dtype=net) for p in parts], dim=-1)
         if not bool(torch.isfinite(context).all()):
             raise ValueError("measurements/inputs hold NaN or Inf; the observer needs finite data.")
+        if self._keep_context is not None:
+            context = context.index_select(-1, self._keep_context)
         return context.transpose(0, 1).contiguous()
 
     # ------------------------------------------------------------------ public API

@@ -47,8 +47,6 @@ os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 import torch
 from omegaconf import DictConfig, OmegaConf
 
-from groups import Product
-
 from . import train_config  # noqa: F401  (registers the schema and the run-id resolver)
 from .atomic import write_text_atomic
 from .baselines import make_estimator
@@ -56,7 +54,7 @@ from .checkpoint import load_checkpoint
 from .data import DatasetError, TrajectoryDataset, load_dataset
 from .evaluation import ObserverEstimator, evaluate, plot_errors, write_table
 from .generate import DatasetConfig, load_or_generate
-from .observer import GRUCore, RecurrentCore, ResidualObserver, factor_names
+from .observer import GRUCore, RecurrentCore, ResidualObserver, core_input_size, factor_names
 from .relax import relax
 from .train_config import DTYPES, RunConfig
 from .training import fit, resolve_checkpoint, validation_loss
@@ -75,19 +73,6 @@ def _dtype(name: str, key: str) -> torch.dtype:
     return getattr(torch, name)
 
 
-def _innovation_factors(group, innovation: dict) -> list:
-    names = factor_names(group)
-    unknown = [k for k in innovation if k not in names]
-    if unknown:
-        raise ValueError(
-            f"model.innovation names factors {unknown} that the group {group!r} does not have; "
-            f"its factors: {list(names)}."
-        )
-    if isinstance(group, Product):
-        return [group.factors[names.index(k)] for k in innovation]
-    return [group] * len(innovation)
-
-
 def build_observer(group, measurement_dim: int, input_dim: int, mcfg: Any) -> ResidualObserver:
     """The observer of a ``model`` config (:class:`~manifold_nets.train_config.ModelConfig`).
 
@@ -95,11 +80,8 @@ def build_observer(group, measurement_dim: int, input_dim: int, mcfg: Any) -> Re
     """
     group = relax(group, list(mcfg.relax))
     innovation = {k: list(v) for k, v in dict(mcfg.innovation).items()}
-    in_size = (
-        group.embedding_dim
-        + measurement_dim
-        + input_dim
-        + sum(g.tangent_dim for g in _innovation_factors(group, innovation))
+    in_size = core_input_size(
+        group, measurement_dim, input_dim, innovation, list(mcfg.relative_only)
     )
     if mcfg.core == "gru":
         core = GRUCore(in_size, group.tangent_dim, mcfg.hidden_size, mcfg.num_layers)
@@ -132,6 +114,7 @@ def build_observer(group, measurement_dim: int, input_dim: int, mcfg: Any) -> Re
         core,
         update=update,
         innovation=innovation,
+        relative_only=list(mcfg.relative_only),
         state_dtype=_dtype(mcfg.state_dtype, "model.state_dtype"),
     )
     return model.to(_dtype(mcfg.net_dtype, "model.net_dtype"))

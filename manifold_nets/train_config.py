@@ -58,6 +58,10 @@ class ModelConfig:
     #: space of its embedding (``manifold_nets.relax``), so with ``updates: {R: absolute}`` the
     #: core predicts ``vec R`` directly, unconstrained. Empty: the observer of the paper.
     relax: list[str] = field(default_factory=list)
+    #: Factors the core reads only through their innovation (each needs an ``innovation`` span):
+    #: their absolute estimate and measurement are left out of its input, e.g. ``[p]`` for a
+    #: rigid body, which makes the observer invariant to translations (an extension).
+    relative_only: list[str] = field(default_factory=list)
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
     state_dtype: str = "float64"
     #: dtype of the network's parameters.

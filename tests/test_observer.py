@@ -299,3 +299,67 @@ def test_internal_embed_and_update_match_the_group(group):
     flat = x.reshape(4, -1)
     torch.testing.assert_close(obs._embed(flat), group.embed(x), rtol=0, atol=0)
     torch.testing.assert_close(obs._update(flat, v), group.rplus(x, v).reshape(4, -1))
+
+
+def test_relative_only_leaves_the_absolute_factor_out_of_the_core_input():
+    g = Product(SO3(), Euclidean(3), names=("R", "p"))
+    meas = 14  # y = (vec R^m, p^m, two more numbers)
+    core = RecordingCore(9 + 11 + 6, g.tangent_dim)  # embed without p, y without p^m
+    obs = ResidualObserver(
+        g, meas, core=core, innovation={"R": (0, 9), "p": (9, 12)}, relative_only=["p"]
+    )
+    gen = torch.Generator().manual_seed(1)
+    rm = SO3().random((2, 3), generator=gen, dtype=torch.float64)
+    pm = torch.randn(2, 3, 3, generator=gen, dtype=torch.float64)
+    rest = torch.randn(2, 3, 2, generator=gen, dtype=torch.float64)
+    obs(torch.cat([rm.flatten(-2), pm, rest], -1))
+    for k, inp in enumerate(core.seen):
+        torch.testing.assert_close(inp[:, 9:18], rm[:, k].flatten(-2).float())  # y's vec R^m
+        torch.testing.assert_close(inp[:, 18:20], rest[:, k].float())  # p^m is left out
+        torch.testing.assert_close(inp[:, 23:], pm[:, k].float())  # p^m - phat (phat = 0)
+    assert obs.signature()["relative_only"] == ["p"]
+    assert "relative_only" not in ResidualObserver(g, meas, innovation={"p": (9, 12)}).signature()
+
+
+def test_relative_only_observer_is_invariant_to_translations():
+    """Shifting every position (true and measured) by a constant shifts the estimates of p by
+    it and leaves everything else unchanged: the core never reads an absolute position."""
+    obs = _obs(RIGID, meas=18, innovation={"R": (0, 9), "p": (9, 12)}, relative_only=["p"])
+    _amplify(obs)
+    gen = torch.Generator().manual_seed(2)
+    y = torch.cat(
+        [
+            SO3().random((3, 9), generator=gen, dtype=torch.float64).flatten(-2),
+            torch.randn(3, 9, 9, generator=gen, dtype=torch.float64),
+        ],
+        -1,
+    )
+    shift = torch.tensor([40.0, -25.0, 7.0], dtype=torch.float64)
+    y2 = y.clone()
+    y2[..., 9:12] += shift
+    start = obs.init_state(3)
+    moved = start.estimate.clone()
+    moved[:, 9:12] += shift  # the same start, shifted
+    a = obs(y, state=start).detach()
+    b = obs(y2, state=start._replace(estimate=moved)).detach()
+    torch.testing.assert_close(b[..., 9:12], a[..., 9:12] + shift, rtol=0, atol=1e-9)
+    torch.testing.assert_close(b[..., :9], a[..., :9], rtol=0, atol=1e-12)
+    torch.testing.assert_close(b[..., 12:], a[..., 12:], rtol=0, atol=1e-12)
+    # without relative_only the same observer is not invariant
+    plain = _obs(RIGID, meas=18, innovation={"R": (0, 9), "p": (9, 12)})
+    _amplify(plain)
+    a = plain(y, state=start).detach()
+    b2 = plain(y2, state=start._replace(estimate=moved)).detach()
+    assert float((b2[..., :9] - a[..., :9]).abs().max()) > 1e-3
+    # the online step path reads the same columns
+    s = start._replace(estimate=moved.clone())
+    for k in range(9):
+        s = obs.step(s, y2[:, k])
+    torch.testing.assert_close(s.estimate, b[:, -1], rtol=0, atol=1e-12)
+
+
+def test_bad_relative_only_is_rejected():
+    with pytest.raises(ValueError, match="does not have"):
+        ResidualObserver(RIGID, 18, innovation={"p": (9, 12)}, relative_only=["q"])
+    with pytest.raises(ValueError, match="no innovation span"):
+        ResidualObserver(RIGID, 18, innovation={"p": (9, 12)}, relative_only=["R"])
