@@ -301,7 +301,8 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
     system = instantiate(cfg.system)
     _check_system(system)
     meth = cfg.method
-    label = meth.label or meth.name
+    # rows are labelled by method; a trained observer by its experiment (paper_cpu, ...)
+    label = meth.label or (cfg.name if meth.name == "learned" and not meth.target else meth.name)
     learned = meth.name in LEARNED_METHODS and not meth.target
     metrics: dict[str, Any] = {
         "name": cfg.name,

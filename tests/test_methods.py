@@ -221,3 +221,17 @@ def test_the_rigid_body_filters_refuse_the_se3_layout():
     for make in (lambda: RigidBodyEKF(se3, 0.1), lambda: ComplementaryFilter(se3)):
         with pytest.raises(ValueError, match="pose_group='so3_r3'"):
             make()
+
+
+@pytest.mark.parametrize("experiment", sorted(p.stem for p in (CONFIGS / "experiment").glob("*.yaml")))
+def test_no_experiment_pins_a_label_that_would_mislabel_other_methods(experiment):
+    # `-m experiment=<e> method=raw,ekf` must give rows labelled raw, ekf: an experiment that set
+    # method.label would stamp its own name on every method's rows
+    cfg = _compose(f"experiment={experiment}", "method=ekf")
+    assert cfg.method.label is None and cfg.method.name == "ekf"
+
+
+def test_a_trained_observer_is_labelled_by_its_experiment(tmp_path):
+    cfg = _compose(*_tiny(tmp_path / "data", "eval.plots=false", "name=tiny_exp"))
+    metrics = run(cfg, tmp_path / "run")
+    assert metrics["method"] == "tiny_exp" and metrics["table"][0]["method"] == "tiny_exp"
