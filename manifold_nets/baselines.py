@@ -65,6 +65,9 @@ class RawMeasurement:
         self.system = system
         self.group = system.group
 
+    def __repr__(self) -> str:
+        return f"RawMeasurement({type(self.system).__name__})"
+
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
         _check_data(self.system, data, "RawMeasurement")
         y = data.measurements
@@ -81,6 +84,9 @@ class DeadReckoning:
     def __init__(self, system):
         self.system = system
         self.group = system.group
+
+    def __repr__(self) -> str:
+        return f"DeadReckoning({type(self.system).__name__})"
 
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
         _check_data(self.system, data, "DeadReckoning")

@@ -185,6 +185,7 @@ def plot_comparison(
         if metric == "membership":
             ax.set_yscale("log")
             ax.set_title("distance from the group")
+            ax.set_ylabel("distance")
         elif mid > 0 and tops[-1] > 4 * mid:  # one method far off: keep the others readable
             ax.set_ylim(0, 2 * mid)
             ax.set_title(f"{metric} (axis clipped)")
@@ -192,7 +193,8 @@ def plot_comparison(
             ax.set_ylim(bottom=0)
             ax.set_title(metric)
         ax.set_xlabel("step k")
-        ax.set_ylabel("mean error")
+        if metric != "membership":
+            ax.set_ylabel("mean error")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     if title:
