@@ -384,6 +384,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
             )
 
     res_dir = out_dir / "results"
+    what = cfg.name if label == cfg.name else f"{cfg.name}, method {label}"
     rows, curves = [], {}
     for sigma in sigmas:
         data = load_inference_data(system, cfg, sigma)
@@ -408,16 +409,14 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
             plot_errors(
                 r,
                 res_dir / f"errors_sigma{sigma:g}.png",
-                title=f"{cfg.name}, {label}: sigma = {sigma:g}, {len(data)} x {data.length} steps",
+                title=f"{what}: sigma = {sigma:g}, {len(data)} x {data.length} steps",
             )
         log.info(
             "sigma %g: %s",
             sigma,
             {k: (float(f"{v:.4g}") if isinstance(v, float) else v) for k, v in r.row.items()},
         )
-    _, md_path = write_table(
-        rows, res_dir / "table", title=f"{cfg.name}, method {label} (seed {cfg.seed})"
-    )
+    _, md_path = write_table(rows, res_dir / "table", title=f"{what} (seed {cfg.seed})")
     metrics["table"] = rows
     write_text_atomic(res_dir / "metrics.json", json.dumps(metrics, indent=1, default=str) + "\n")
     write_text_atomic(res_dir / "curves.json", json.dumps(curves) + "\n")
