@@ -22,6 +22,11 @@ What is measured, all float32 networks on the CPU (``--threads``, default 2):
   them alike; the table gives the median and the minimum over ``--reps`` repetitions and the
   ratio of medians to the open-loop GRU.
 
+  With ``--compile`` also ``closed loop, float64 state, compiled``
+  (:meth:`ResidualObserver.compile_step`, ``torch.compile``; compiled in the warm-up), and with
+  ``--innovation`` the observer with innovation inputs ``{R: y[0:9], p: y[9:12]}``, eager and
+  compiled (the measurements' first nine entries are rotations).
+
 * **inference**: the observer over 1000 sequences of 1000 steps (``torch.inference_mode``),
   float32 network, float64 state; the distance of the last estimate from the group, and the
   same with an all-float32 observer (200 sequences). The untrained network's steps are of
@@ -48,6 +53,9 @@ from manifold_nets.observer import ResidualObserver
 GROUP = Product(SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "b_omega", "b_v"))
 UPDATE = {"b_omega": "absolute", "b_v": "absolute"}
 MEAS = 18
+INNOV = {"R": (0, 9), "p": (9, 12)}  # the innovation inputs of experiment=default / paper_cpu
+COMPILE = False  # --compile: also the observer with its step compiled (torch.compile)
+INNOVATION = False  # --innovation (with --compile): also with innovation inputs
 
 
 def _optimizer(params):
@@ -59,6 +67,7 @@ def train_step_variants(hidden: int, batch: int, steps: int) -> dict:
     g = torch.Generator().manual_seed(0)
     torch.manual_seed(0)
     y = torch.randn(batch, steps, MEAS, generator=g)
+    y[..., :9] = SO3().random((batch, steps), generator=g).flatten(-2)  # R^m: a rotation
     truth = GROUP.random((batch, steps + 1), generator=g, dtype=torch.float64)
 
     gru = torch.nn.GRU(GROUP.embedding_dim + MEAS, hidden, 2, batch_first=True)
@@ -74,10 +83,14 @@ def train_step_variants(hidden: int, batch: int, steps: int) -> dict:
         loss.backward()
         opt_open.step()
 
-    def closed(state_dtype):
+    def closed(state_dtype, compiled=False, innovation=None):
+        torch.manual_seed(0)
         obs = ResidualObserver(
-            GROUP, MEAS, hidden_size=hidden, num_layers=2, update=UPDATE, state_dtype=state_dtype
+            GROUP, MEAS, hidden_size=hidden, num_layers=2, update=UPDATE, state_dtype=state_dtype,
+            innovation=innovation,
         )
+        if compiled:
+            obs.compile_step()
         opt = _optimizer(obs.parameters())
         target = truth.to(state_dtype)
 
@@ -89,11 +102,19 @@ def train_step_variants(hidden: int, batch: int, steps: int) -> dict:
 
         return run
 
-    return {
+    out = {
         "open-loop nn.GRU": open_loop,
         "closed loop, float32 state": closed(torch.float32),
         "closed loop, float64 state": closed(torch.float64),
     }
+    if COMPILE:
+        out["closed loop, float64 state, compiled"] = closed(torch.float64, compiled=True)
+        if INNOVATION:
+            out["closed loop + innovation, float64 state"] = closed(torch.float64, innovation=INNOV)
+            out["closed loop + innovation, float64 state, compiled"] = closed(
+                torch.float64, compiled=True, innovation=INNOV
+            )
+    return out
 
 
 def time_interleaved(fns: dict, reps: int) -> dict[str, list[float]]:
@@ -148,7 +169,11 @@ def main(argv=None) -> int:
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--skip-inference", action="store_true")
     ap.add_argument("--write", action="store_true", help="write benchmarks/results/observer.md")
+    ap.add_argument("--compile", action="store_true", help="also the compiled step")
+    ap.add_argument("--innovation", action="store_true", help="with --compile: innovation too")
     args = ap.parse_args(argv)
+    global COMPILE, INNOVATION
+    COMPILE, INNOVATION = args.compile, args.innovation
     torch.set_num_threads(args.threads)
 
     cmd = " ".join(["benchmarks/bench_observer.py", *(sys.argv[1:] if argv is None else argv)])

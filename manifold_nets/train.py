@@ -343,6 +343,9 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
     elif meth.name == "learned" and learned:
         parts = load_training_data(system, cfg)
         t = cfg.train
+        if t.compile:
+            model.compile_step()
+            log.info("the observer's step is compiled (torch.compile): the first batch waits")
         t0 = time.perf_counter()
         result = fit(
             model,

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shutil
+
 import pytest
 import torch
 
@@ -363,3 +365,21 @@ def test_bad_relative_only_is_rejected():
         ResidualObserver(RIGID, 18, innovation={"p": (9, 12)}, relative_only=["q"])
     with pytest.raises(ValueError, match="no innovation span"):
         ResidualObserver(RIGID, 18, innovation={"p": (9, 12)}, relative_only=["R"])
+
+
+@pytest.mark.skipif(shutil.which("g++") is None, reason="torch.compile on the CPU needs a C++ compiler")
+def test_compiled_step_gives_the_eager_losses_and_gradients():
+    kw = dict(meas=18, hidden=8, layers=1, innovation={"R": (0, 9), "p": (9, 12)},
+              update={"b_omega": "absolute", "b_v": "absolute"}, state_dtype=torch.float64)
+    eager, compiled = _obs(RIGID, **kw), _obs(RIGID, **kw).compile_step()
+    gen = torch.Generator().manual_seed(3)
+    y = torch.cat([SO3().random((4, 6), generator=gen, dtype=torch.float64).flatten(-2),
+                   torch.randn(4, 6, 9, generator=gen, dtype=torch.float64)], -1)
+    x = RIGID.random((4, 7), generator=gen, dtype=torch.float64)
+    for obs in (eager, compiled):
+        embedding_mse(RIGID, obs(y), x).backward()
+    for a, b in zip(eager.parameters(), compiled.parameters()):
+        torch.testing.assert_close(b.grad, a.grad, rtol=1e-4, atol=1e-6)
+    with torch.no_grad():  # without gradients the eager step runs
+        torch.testing.assert_close(compiled(y), eager(y), rtol=0, atol=0)
+    assert float(RIGID.membership_error(compiled(y).detach()).max()) < 1e-12
