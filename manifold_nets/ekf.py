@@ -48,6 +48,7 @@ guess), the format of the learned observer's rollout, so ``System.metrics`` appl
 from __future__ import annotations
 
 import abc
+import math
 import time
 from typing import NamedTuple
 
@@ -57,9 +58,32 @@ from groups import LieGroup
 
 from .data import TrajectoryDataset
 
-__all__ = ["EKFState", "ErrorStateEKF", "FilterModel", "FilterResult", "SystemFilterModel"]
+__all__ = [
+    "EKFState",
+    "ErrorStateEKF",
+    "FilterModel",
+    "FilterResult",
+    "SystemFilterModel",
+    "check_noise_level",
+]
 
 _JACOBIANS = ("autograd", "analytic")
+
+
+def check_noise_level(owner: str, sigma: object) -> float:
+    """``sigma`` as a float, or a ValueError unless it is finite and ``> 0``.
+
+    A model-based filter is told the noise level of its data; it sets the filter's measurement
+    (and, where readings drive the prediction, process) noise, and with ``sigma = 0`` the
+    innovation covariance is singular.
+    """
+    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0 < sigma < math.inf:
+        raise ValueError(
+            f"{owner} needs the noise level sigma > 0 (its measurement and process noise; with "
+            f"noise-free data the innovation covariance is singular: use the raw measurement), "
+            f"got {sigma!r}."
+        )
+    return float(sigma)
 
 
 # ---------------------------------------------------------------------------------------- model
@@ -164,11 +188,7 @@ class SystemFilterModel(FilterModel):
     def __init__(
         self, system, sigma: float, drive_noise_std: float = 0.0, initial_std: float = 1.0
     ):
-        if not sigma > 0:
-            raise ValueError(
-                f"SystemFilterModel needs the measurement noise sigma > 0, got {sigma!r}: with a "
-                f"noise-free measurement the innovation covariance is singular."
-            )
+        sigma = check_noise_level("SystemFilterModel", sigma)
         if not drive_noise_std >= 0 or not initial_std > 0:
             raise ValueError(
                 f"drive_noise_std must be >= 0 and initial_std > 0, got {drive_noise_std!r}, "

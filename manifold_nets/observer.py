@@ -456,9 +456,9 @@ class ResidualObserver(nn.Module):
         # column indices of embed(x) and of (y, u) that the core reads; None: all of them
         self.register_buffer("_keep_embedding", keep_embedding, persistent=False)
         self.register_buffer("_keep_context", keep_context, persistent=False)
-        emb_dim = group.embedding_dim if keep_embedding is None else len(keep_embedding)
-        ctx_dim = measurement_dim + input_dim if keep_context is None else len(keep_context)
-        in_size = emb_dim + ctx_dim + innov_dim
+        in_size = core_input_size(
+            group, measurement_dim, input_dim, self.innovation, self.relative_only
+        )
         if core is None:
             core = GRUCore(in_size, group.tangent_dim, hidden_size, num_layers)
         if not isinstance(core, RecurrentCore):
@@ -466,10 +466,10 @@ class ResidualObserver(nn.Module):
         if core.input_size != in_size or core.output_size != group.tangent_dim:
             raise ValueError(
                 f"core maps {core.input_size} -> {core.output_size}, but the observer needs "
-                f"embedding + measurement and input + innovation = {emb_dim} + {ctx_dim} + "
-                f"{innov_dim} = {in_size} -> tangent_dim = {group.tangent_dim}"
-                + (f" (relative_only {list(self.relative_only)} left out)." if
-                   self.relative_only else ".")
+                f"{in_size} (embedding_dim + measurement_dim + input_dim + innovation's tangent "
+                f"dims = {group.embedding_dim} + {measurement_dim} + {input_dim} + {innov_dim}"
+                + (f", less relative_only {list(self.relative_only)}" if self.relative_only else "")
+                + f") -> tangent_dim = {group.tangent_dim}."
             )
         self.core = core
         self._compiled_step = None
@@ -480,9 +480,10 @@ class ResidualObserver(nn.Module):
 
         The step is a few dozen small kernels (the core's cells, the group update, the
         innovation's log); compiled, they fuse, and the backward pass with them. Measured on 2
-        CPU cores, 1 thread, 2x128 on the rigid body: 1.25x faster at batch 256, 1.7x at batch
-        64 with innovation inputs, after about 45 s of compilation (once per batch shape); the
-        losses equal the eager ones to 1e-6 (``benchmarks/results/observer.md``). Needs a C++
+        CPU cores, 1 thread, 2x128 on the rigid body: 1.22x faster at batch 256 (1.42x with
+        innovation inputs), 1.36x at batch 64 (1.77x with innovation inputs), after about 45 s
+        of compilation (once per batch shape); the losses equal the eager ones to six digits
+        (``benchmarks/results/observer.md``). Needs a C++
         compiler on the CPU. ``options`` go to ``torch.compile`` (default ``dynamic=False``).
         Returns ``self``.
         """
@@ -561,7 +562,8 @@ class ResidualObserver(nn.Module):
         """One unchecked step.
 
         ``x``: the flat state ``(B, numel)`` in the state dtype; ``context``: ``(B, l + m)`` in the
-        network dtype (less the relative-only columns); ``measured``: the step's measured factor elements (innovation only).
+        network dtype (less the relative-only columns); ``measured``: the step's measured factor
+        elements (innovation only).
         """
         net = context.dtype
         e = self._embed(x)

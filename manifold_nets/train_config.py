@@ -106,8 +106,8 @@ class TrainSettings:
     device: str = "cpu"
     #: torch intra-op threads (``null``: torch's default).
     threads: Optional[int] = None
-    #: Compile the observer's step with ``torch.compile`` for training (fused kernels: 1.25-1.7x
-    #: faster steps on the CPU here, after ~45 s of compilation; needs a C++ compiler).
+    #: Compile the observer's step with ``torch.compile`` for training (fused kernels: 1.2-2x
+    #: faster epochs on the CPU here, after ~45 s of compilation; needs a C++ compiler).
     compile: bool = False
     #: Continue from a checkpoint: a ``last.pt`` file or the run folder that holds one.
     resume: Optional[str] = None

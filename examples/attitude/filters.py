@@ -28,20 +28,11 @@ import math
 import torch
 
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.ekf import ErrorStateEKF, FilterModel
+from manifold_nets.ekf import ErrorStateEKF, FilterModel, check_noise_level
 
 from .system import Attitude
 
 __all__ = ["AttitudeEKF", "AttitudeFilterModel"]
-
-
-def _check_sigma(sigma: float) -> float:
-    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0 < sigma < math.inf:
-        raise ValueError(
-            f"the AHRS's EKF needs the noise level sigma > 0 (it sets both the gyro's process "
-            f"noise and the directions' measurement noise), got {sigma!r}."
-        )
-    return float(sigma)
 
 
 class AttitudeFilterModel(FilterModel):
@@ -57,7 +48,7 @@ class AttitudeFilterModel(FilterModel):
         if not isinstance(system, Attitude):
             raise TypeError(f"AttitudeFilterModel needs an Attitude, got {type(system).__name__}.")
         self.system = system
-        self.sigma = _check_sigma(sigma)
+        self.sigma = check_noise_level("AttitudeFilterModel", sigma)
         self.group = system.group
         self.measurement_dim = system.measurement_dim
         self.input_dim = system.input_dim

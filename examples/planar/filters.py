@@ -29,20 +29,11 @@ import math
 import torch
 
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.ekf import ErrorStateEKF, FilterModel
+from manifold_nets.ekf import ErrorStateEKF, FilterModel, check_noise_level
 
 from .system import Planar
 
 __all__ = ["PlanarEKF", "PlanarFilterModel"]
-
-
-def _check_sigma(sigma: float) -> float:
-    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0 < sigma < math.inf:
-        raise ValueError(
-            f"the planar vehicle's EKF needs the noise level sigma > 0 (it sets both the "
-            f"odometry's process noise and the fix's measurement noise), got {sigma!r}."
-        )
-    return float(sigma)
 
 
 class PlanarFilterModel(FilterModel):
@@ -58,7 +49,7 @@ class PlanarFilterModel(FilterModel):
         if not isinstance(system, Planar):
             raise TypeError(f"PlanarFilterModel needs a Planar, got {type(system).__name__}.")
         self.system = system
-        self.sigma = _check_sigma(sigma)
+        self.sigma = check_noise_level("PlanarFilterModel", sigma)
         self.group = system.group
         self.measurement_dim = system.measurement_dim
         self.input_dim = system.input_dim

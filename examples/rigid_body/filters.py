@@ -51,7 +51,7 @@ import torch
 from groups import SO3
 from groups.so3 import left_jacobian, left_jacobian_inverse, skew, unskew
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.ekf import FilterModel
+from manifold_nets.ekf import FilterModel, check_noise_level
 
 from .system import RigidBody
 
@@ -79,16 +79,6 @@ def _check_system(system, who: str) -> None:
             f"this RigidBody has pose_group={system.pose_group!r}. Filter the so3_r3 system (the "
             "same data) and compare through System.metrics."
         )
-
-
-def _check_sigma(sigma: float) -> float:
-    if isinstance(sigma, bool) or not isinstance(sigma, (int, float)) or not 0 < sigma < math.inf:
-        raise ValueError(
-            f"the rigid-body EKF needs the noise level sigma > 0 (it is both the process and the "
-            f"measurement noise of the filter; with sigma = 0 use the raw measurement), got "
-            f"{sigma!r}."
-        )
-    return float(sigma)
 
 
 # ------------------------------------------------------------------ d(J_l(phi) v)/dphi
@@ -162,7 +152,7 @@ class RigidBodyFilterModel(FilterModel):
     ):
         _check_system(system, "RigidBodyFilterModel")
         self.system = system
-        self.sigma = _check_sigma(sigma)
+        self.sigma = check_noise_level("RigidBodyFilterModel", sigma)
         if not rotation_std > 0:
             raise ValueError(f"rotation_std must be > 0, got {rotation_std!r}.")
         self.rotation_std = float(rotation_std)
@@ -274,7 +264,7 @@ def initialize_from_measurements(
     m = 5 and 10 (2000 sequences each).
     Returns ``(x (N, 18), P (N, 12, 12))``.
     """
-    sigma = _check_sigma(sigma)
+    sigma = check_noise_level("initialize_from_measurements", sigma)
     if measurements.dim() != 3 or measurements.shape[-1] != 18 or measurements.shape[1] < 2:
         raise ValueError(
             f"initialize_from_measurements needs (N, m, 18) measurements with m >= 2, got "
@@ -388,7 +378,9 @@ class ComplementaryFilter:
     def tuned(cls, system: RigidBody, sigma: float, **search) -> ComplementaryFilter:
         """The filter with its gains chosen for ``sigma`` by :func:`tune_complementary_gains`
         (keyword arguments go to the search); what ``method=complementary`` runs."""
-        gains, _ = tune_complementary_gains(system, _check_sigma(sigma), **search)
+        gains, _ = tune_complementary_gains(
+            system, check_noise_level("ComplementaryFilter.tuned", sigma), **search
+        )
         log.info("complementary filter, sigma %g: gains %s", sigma, gains)
         return cls(system, gains)
 
