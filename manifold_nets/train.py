@@ -57,7 +57,7 @@ from .generate import DatasetConfig, load_or_generate
 from .observer import GRUCore, RecurrentCore, ResidualObserver, core_input_size, factor_names
 from .relax import relax
 from .train_config import DTYPES, RunConfig
-from .training import fit, resolve_checkpoint, validation_loss
+from .training import check_schedule, fit, resolve_checkpoint, validation_loss
 
 __all__ = ["LEARNED_METHODS", "build_observer", "check_config", "main", "resolve_device", "run"]
 
@@ -292,6 +292,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
     resolved = OmegaConf.to_container(cfg, resolve=True)
     write_text_atomic(out_dir / "config.yaml", OmegaConf.to_yaml(resolved))
     sigmas = _sigmas(cfg)  # every check that needs no work, first
+    check_schedule(cfg.train.schedule, float(cfg.train.lr), float(cfg.train.lr_min))
     if cfg.train.threads is not None:
         torch.set_num_threads(int(cfg.train.threads))
     device = resolve_device(cfg.train.device)
@@ -356,6 +357,8 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
             batch_size=t.batch_size,
             lr=t.lr,
             weight_decay=t.weight_decay,
+            schedule=t.schedule,
+            lr_min=t.lr_min,
             grad_clip=t.grad_clip,
             max_batches=t.max_batches,
             eval_batch_size=t.eval_batch_size,

@@ -95,6 +95,11 @@ class TrainSettings:
     batch_size: int = 256
     lr: float = 3.0e-4
     weight_decay: float = 0.1
+    #: Learning-rate schedule over the epochs: ``constant`` (the paper names none) or
+    #: ``cosine`` (a half cosine from ``lr`` in the first epoch down towards ``lr_min``, which
+    #: it would reach after the last).
+    schedule: str = "constant"
+    lr_min: float = 0.0
     #: Clip the gradient's global norm to this value (``null``: no clipping, as the paper).
     grad_clip: Optional[float] = None
     #: Stop an epoch after this many batches (``null``: the whole training split); for quick looks.

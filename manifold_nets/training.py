@@ -6,6 +6,10 @@ identity over its whole length, the loss is the embedding MSE ``L`` of
 AdamW (lr 3e-4, weight decay 0.1 by default) updates the weights. After every epoch the
 validation loss is computed; the model with the smallest one is kept (``best.pt``).
 
+The learning rate is constant (the paper names no schedule) or, with ``schedule="cosine"``,
+follows :func:`learning_rate`: a half cosine, one value per epoch, from ``lr`` in the first epoch
+down towards ``lr_min`` (a function of the epoch alone, so a resumed run gets the same rates).
+
 Files written in ``out_dir``:
 
 * ``checkpoints/last.pt`` after every epoch: weights, optimizer, epoch, the generator states,
@@ -44,11 +48,52 @@ from .data import TrajectoryDataset
 from .losses import embedding_mse
 from .observer import ResidualObserver
 
-__all__ = ["TrainingDiverged", "FitResult", "fit", "validation_loss", "resolve_checkpoint"]
+__all__ = [
+    "TrainingDiverged",
+    "FitResult",
+    "fit",
+    "check_schedule",
+    "learning_rate",
+    "validation_loss",
+    "resolve_checkpoint",
+]
 
 log = logging.getLogger(__name__)
 
+SCHEDULES = ("constant", "cosine")
+
 _LOG_FIELDS = ("epoch", "train_loss", "val_loss", "best_val_loss", "best_epoch", "lr", "seconds")
+
+
+def check_schedule(schedule: str, lr: float, lr_min: float = 0.0) -> None:
+    """Raises ``ValueError`` naming the setting unless the learning-rate settings are usable."""
+    if schedule not in SCHEDULES:
+        raise ValueError(
+            f"train.schedule={schedule!r} is not a schedule; choose one of {', '.join(SCHEDULES)}."
+        )
+    if not (math.isfinite(lr) and lr > 0):
+        raise ValueError(f"train.lr must be a positive number, got {lr!r}.")
+    if not (math.isfinite(lr_min) and 0.0 <= lr_min <= lr):
+        raise ValueError(
+            f"train.lr_min must satisfy 0 <= lr_min <= train.lr = {lr}, got {lr_min!r}; it is "
+            "where the cosine schedule's learning rate ends."
+        )
+
+
+def learning_rate(
+    epoch: int, *, epochs: int, lr: float, schedule: str = "constant", lr_min: float = 0.0
+) -> float:
+    """The learning rate of ``epoch`` (1 .. ``epochs``) under ``schedule``.
+
+    ``constant``: ``lr`` throughout. ``cosine``: ``lr_min + (lr - lr_min) (1 + cos(pi (epoch -
+    1) / epochs)) / 2``: ``lr`` in the first epoch, falling along a half cosine that would reach
+    ``lr_min`` after the last (so no epoch is spent at ``lr_min = 0``).
+    """
+    check_schedule(schedule, lr, lr_min)
+    if schedule == "constant":
+        return float(lr)
+    frac = (epoch - 1) / epochs
+    return float(lr_min + (lr - lr_min) * 0.5 * (1.0 + math.cos(math.pi * frac)))
 
 
 class TrainingDiverged(FloatingPointError):
@@ -157,6 +202,8 @@ def fit(
     batch_size: int = 256,
     lr: float = 3e-4,
     weight_decay: float = 0.1,
+    schedule: str = "constant",
+    lr_min: float = 0.0,
     grad_clip: float | None = None,
     max_batches: int | None = None,
     eval_batch_size: int = 500,
@@ -173,7 +220,8 @@ def fit(
     ``noise_sigma = (lo, hi)`` with ``hi > 0`` adds measurement noise of a per-sequence
     ``sigma ~ U[lo, hi]`` to every training batch through ``system.apply_noise(measurements,
     noise)`` (noise ``(N, T, system.noise_dim)``, already scaled); validation stays as given.
-    ``config`` (plain data) is stored in the checkpoints. ``resume`` is a ``last.pt`` (or a run
+    ``schedule`` (``constant`` or ``cosine``, down to ``lr_min``) sets each epoch's learning
+    rate through :func:`learning_rate`. ``config`` (plain data) is stored in the checkpoints. ``resume`` is a ``last.pt`` (or a run
     folder holding one) of the same model; training continues after its epoch.
     """
     for name, val in (
@@ -187,6 +235,7 @@ def fit(
             or val < (0 if name == "epochs" else 1)
         ):
             raise ValueError(f"{name} must be a positive integer, got {val!r}.")
+    check_schedule(schedule, lr, lr_min)
     lo, hi = (float(s) for s in noise_sigma)
     if not 0.0 <= lo <= hi:
         raise ValueError(f"noise sigma range must satisfy 0 <= min <= max, got ({lo}, {hi}).")
@@ -290,6 +339,10 @@ def fit(
     model.train()
     for epoch in range(start, epochs + 1):
         t0 = time.perf_counter()
+        for group in opt.param_groups:
+            group["lr"] = learning_rate(
+                epoch, epochs=epochs, lr=lr, schedule=schedule, lr_min=lr_min
+            )
         perm = torch.randperm(n, generator=gen)
         batches = list(perm.split(batch_size))
         if max_batches is not None:

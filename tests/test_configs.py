@@ -96,6 +96,17 @@ def test_keys_appended_with_plus_are_checked_before_any_work(tmp_path):
     assert not (tmp_path / "checkpoints").exists()
 
 
+@pytest.mark.parametrize(
+    "override, match",
+    [("train.schedule=linear", "train.schedule='linear'"), ("train.lr_min=1", "train.lr_min")],
+)
+def test_bad_schedules_fail_before_any_work(tmp_path, override, match):
+    with pytest.raises(ValueError, match=match):
+        run(_compose(*_tiny(tmp_path / "data", override)), tmp_path / "run")
+    assert not (tmp_path / "run" / "checkpoints").exists()
+    assert not (tmp_path / "data").exists()  # no data generated either
+
+
 def test_run_folders_cannot_collide():
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose("train", overrides=["experiment=default"], return_hydra_config=True)

@@ -16,7 +16,7 @@ from manifold_nets.checkpoint import CheckpointError, load_checkpoint, save_chec
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.evaluation import evaluate, plot_errors, write_table
 from manifold_nets.observer import ResidualObserver
-from manifold_nets.training import TrainingDiverged, fit, validation_loss
+from manifold_nets.training import TrainingDiverged, fit, learning_rate, validation_loss
 
 GROUP = Product(SO3(), Euclidean(3), Euclidean(2), names=("R", "p", "b"))
 MEAS = GROUP.embedding_dim  # the measurement is the noisy embedding of the state
@@ -88,9 +88,11 @@ def test_training_lowers_the_loss(tmp_path):
     assert validation_loss(fresh, val) == pytest.approx(res.best_val_loss, rel=1e-6)
 
 
-def test_resume_gives_the_uninterrupted_result(tmp_path):
+@pytest.mark.parametrize("schedule", ["constant", "cosine"])
+def test_resume_gives_the_uninterrupted_result(tmp_path, schedule):
     train, val = make_data(24, seed=0), make_data(8, seed=1)
     noisy = {"noise_sigma": (0.0, 0.3), "system": EmbeddingSystem()}  # RNG state matters too
+    noisy["schedule"] = schedule  # the learning rate of a resumed epoch too
     straight = make_model()
     fit(straight, train, val, out_dir=tmp_path / "a", **FIT, **noisy)
 
@@ -104,6 +106,57 @@ def test_resume_gives_the_uninterrupted_result(tmp_path):
     a_hist = json.loads((tmp_path / "a" / "log.json").read_text())
     assert [h["val_loss"] for h in res.history] == [h["val_loss"] for h in a_hist]
     assert (tmp_path / "c" / "checkpoints" / "best.pt").is_file()
+
+
+def test_learning_rate_schedules():
+    assert [learning_rate(e, epochs=5, lr=2e-3) for e in range(1, 6)] == [2e-3] * 5
+    lrs = [
+        learning_rate(e, epochs=40, lr=1e-3, schedule="cosine", lr_min=1e-5) for e in range(1, 41)
+    ]
+    assert lrs[0] == 1e-3
+    assert all(a > b for a, b in zip(lrs, lrs[1:]))  # strictly falling ...
+    assert 1e-5 < lrs[-1] < 1e-5 + 0.01 * (1e-3 - 1e-5)  # ... towards lr_min, never at it
+    assert lrs[20] == pytest.approx((1e-3 + 1e-5) / 2, rel=1e-12)  # half way at epoch 21 of 40
+    assert learning_rate(1, epochs=1, lr=1e-3, schedule="cosine") == 1e-3
+
+
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        ({"schedule": "linear"}, "train.schedule='linear'.*constant, cosine"),
+        ({"schedule": "cosine", "lr_min": 0.1}, "train.lr_min"),
+        ({"schedule": "cosine", "lr_min": -1.0}, "train.lr_min"),
+        ({"lr": 0.0}, "train.lr must be a positive"),
+        ({"lr": float("nan")}, "train.lr must be a positive"),
+    ],
+)
+def test_bad_learning_rate_settings_fail_before_any_work(tmp_path, kwargs, match):
+    settings = {**FIT, **kwargs}
+    with pytest.raises(ValueError, match=match):
+        fit(make_model(), make_data(8), make_data(4, seed=1), out_dir=tmp_path / "run", **settings)
+    assert not (tmp_path / "run").exists()
+    with pytest.raises(ValueError, match=match):
+        learning_rate(
+            1, epochs=3, lr=settings["lr"], **{k: v for k, v in kwargs.items() if k != "lr"}
+        )
+
+
+def test_cosine_schedule_sets_each_epochs_rate(tmp_path):
+    train, val = make_data(24, seed=0), make_data(8, seed=1)
+    runs = {}
+    for schedule in ("constant", "cosine"):
+        model = make_model()
+        res = fit(
+            model, train, val, out_dir=tmp_path / schedule, **FIT, schedule=schedule, lr_min=1e-4
+        )
+        runs[schedule] = model
+        want = [
+            learning_rate(e, epochs=3, lr=1e-2, schedule=schedule, lr_min=1e-4) for e in (1, 2, 3)
+        ]
+        assert [h["lr"] for h in res.history[1:]] == want  # read back from the optimizer
+    assert want[0] == 1e-2 and want[1] < 1e-2
+    a, b = runs["constant"].state_dict(), runs["cosine"].state_dict()
+    assert any(not torch.equal(a[k], b[k]) for k in a)  # the schedule reached the optimizer
 
 
 def test_checkpoint_round_trip_and_errors(tmp_path):
