@@ -59,6 +59,7 @@ from groups import LieGroup
 from .data import TrajectoryDataset
 
 __all__ = [
+    "BiasedReadingsFilterModel",
     "EKFState",
     "ErrorStateEKF",
     "FilterModel",
@@ -228,6 +229,62 @@ class SystemFilterModel(FilterModel):
         x0 = self.group.identity((batch,), dtype=dtype, device=device)
         P0 = self.initial_std**2 * torch.eye(n, dtype=dtype, device=device).expand(batch, n, n)
         return x0, P0.clone()
+
+
+class BiasedReadingsFilterModel(FilterModel):
+    """The filter model of a system whose readings drive its prediction, biased by a state.
+
+    An IMU's gyro, a vehicle's odometry: the motion over ``k -> k+1`` is known only through
+    readings in ``y_{k+1}`` whose biases are part of the state. The filter uses the readings
+    for the prediction and the rest of ``y`` for the update::
+
+        drive     w = system.drive_from_measurement(y, u) - bias(x) - q   q: the readings' noise
+        step      system.step(x, w)
+        measure   system.measure(x, w, (r, 0)): the update's noise r; the readings' is q already
+        residual  system.measurement_residual(z, z_hat)[..., :measurement_noise_dim]
+
+    The layout this assumes: the update's entries come first in ``system.measure``'s noise and
+    in its residual, the readings' after them (true of the rigid body, the AHRS and the planar
+    vehicle). Counting the readings in the update too would use their noise twice.
+
+    A subclass sets ``system_type`` (checked in the constructor), ``process_noise_dim`` (the
+    readings' noise), ``measurement_noise_dim`` (the update's), writes :meth:`bias`, the two
+    covariances and the prior. ``sigma`` is the data's noise level (checked, > 0).
+    """
+
+    system_type: type = object
+
+    def __init__(self, system, sigma: float):
+        who = type(self).__name__
+        if not isinstance(system, self.system_type):
+            want = self.system_type.__name__
+            article = "an" if want[0] in "AEIOU" else "a"
+            raise TypeError(f"{who} needs {article} {want}, got {type(system).__name__}.")
+        self.system = system
+        self.sigma = check_noise_level(who, sigma)
+        self.group = system.group
+        self.measurement_dim = system.measurement_dim
+        self.input_dim = system.input_dim
+
+    @abc.abstractmethod
+    def bias(self, x: torch.Tensor) -> torch.Tensor:
+        """The readings' biases ``(*batch, process_noise_dim)`` held in the state ``x``."""
+
+    def drive(self, x, y, u, noise=None):
+        w = self.system.drive_from_measurement(y, u) - self.bias(x)
+        return w if noise is None else w - noise
+
+    def step(self, x, drive):
+        return self.system.step(x, drive)
+
+    def measure(self, x, drive, noise=None):
+        if noise is not None:  # the update's noise only: the readings' is the process noise
+            pad = self.system.noise_dim - noise.shape[-1]
+            noise = torch.cat((noise, noise.new_zeros(*noise.shape[:-1], pad)), dim=-1)
+        return self.system.measure(x, drive, noise)
+
+    def residual(self, z, z_hat):
+        return self.system.measurement_residual(z, z_hat)[..., : self.measurement_noise_dim]
 
 
 # ---------------------------------------------------------------------------------------- filter

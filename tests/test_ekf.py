@@ -18,7 +18,12 @@ from examples.rigid_body.filters import (
 )
 from groups import SO3, Euclidean
 from groups.so3 import left_jacobian
-from manifold_nets.ekf import ErrorStateEKF, FilterModel, SystemFilterModel
+from manifold_nets.ekf import (
+    BiasedReadingsFilterModel,
+    ErrorStateEKF,
+    FilterModel,
+    SystemFilterModel,
+)
 from manifold_nets.system import System
 
 F64 = torch.float64
@@ -305,3 +310,78 @@ def test_measurement_residual_hook():
     assert math.isclose(
         float(LinearSystem().measurement_residual(torch.ones(2), torch.zeros(2)).sum()), 2.0
     )
+
+
+class BiasedOdometer:
+    """A cart on a line: position ``p`` and the odometer's bias ``b``, state ``(p, b)`` on
+    ``R^2``. ``y_{k+1} = (p_{k+1} + sigma n1, v_k + b + sigma n2)``: a position fix, then the
+    biased speed reading that drives the prediction."""
+
+    group = Euclidean(2)
+    measurement_dim = 2
+    input_dim = 0
+    noise_dim = 2
+    dt = 0.1
+
+    def step(self, x, drive):
+        return torch.cat((x[..., :1] + self.dt * drive, x[..., 1:]), dim=-1)
+
+    def measure(self, x, drive, noise=None):
+        y = torch.cat((x[..., :1], drive + x[..., 1:]), dim=-1)
+        return y if noise is None else y + noise
+
+    def measurement_residual(self, y, y_hat):
+        return y - y_hat
+
+    def drive_from_measurement(self, y, u):
+        return y[..., 1:]
+
+
+class OdometerFilterModel(BiasedReadingsFilterModel):
+    system_type = BiasedOdometer
+    process_noise_dim = 1
+    measurement_noise_dim = 1
+
+    def bias(self, x):
+        return x[..., 1:]
+
+    def process_noise_cov(self, dtype, device=None):
+        return self.sigma**2 * torch.eye(1, dtype=dtype, device=device)
+
+    def measurement_noise_cov(self, dtype, device=None):
+        return self.sigma**2 * torch.eye(1, dtype=dtype, device=device)
+
+    def initial_state(self, batch, dtype, device=None):
+        return torch.zeros(batch, 2, dtype=dtype), 4 * torch.eye(2, dtype=dtype).expand(batch, 2, 2)
+
+
+def test_biased_readings_model_drives_with_readings_and_learns_their_bias():
+    """A model of a few lines on BiasedReadingsFilterModel: the reading minus the bias state
+    drives the prediction, only the fix updates, and the filter finds the odometer's bias."""
+    system, sigma, n, t = BiasedOdometer(), 0.05, 64, 400
+    g = gen(5)
+    bias = torch.empty(n, 1, dtype=F64).uniform_(-1, 1, generator=g)
+    x = torch.cat((torch.zeros(n, 1, dtype=F64), bias), dim=-1)
+    ys = []
+    for _ in range(t):
+        v = torch.randn(n, 1, generator=g, dtype=F64)
+        noise = sigma * torch.randn(n, 2, generator=g, dtype=F64)
+        ys.append(system.measure(x := system.step(x, v), v, noise))
+    model = OdometerFilterModel(system, sigma)
+    y = torch.stack(ys, 1)
+    # the pieces: drive = reading - bias state - q; the update sees the fix only
+    xh = torch.tensor([[3.0, 0.25]], dtype=F64)
+    q = torch.tensor([[0.1]], dtype=F64)
+    torch.testing.assert_close(model.drive(xh, y[:1, 0], None, q), y[:1, 0, 1:] - 0.25 - 0.1)
+    z = model.measure(xh, torch.tensor([[1.0]], dtype=F64), torch.tensor([[0.5]], dtype=F64))
+    torch.testing.assert_close(z, torch.tensor([[3.5, 1.25]], dtype=F64))  # reading noise-free
+    assert model.residual(y[:1, 0], z).shape == (1, 1)
+    est = ErrorStateEKF(model).filter(y).estimates
+    err = (est[:, -50:, 1] - bias).abs().mean()
+    assert err < 0.05, err  # the bias, never measured, is found from the fixes
+    with pytest.raises(
+        TypeError, match="OdometerFilterModel needs a BiasedOdometer, got RigidBody"
+    ):
+        OdometerFilterModel(RigidBody(), sigma)
+    with pytest.raises(ValueError, match="sigma > 0"):
+        OdometerFilterModel(system, 0.0)

@@ -28,45 +28,25 @@ import math
 import torch
 
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.ekf import ErrorStateEKF, FilterModel, check_noise_level
+from manifold_nets.ekf import BiasedReadingsFilterModel, ErrorStateEKF
 
 from .system import Attitude
 
 __all__ = ["AttitudeEKF", "AttitudeFilterModel"]
 
 
-class AttitudeFilterModel(FilterModel):
+class AttitudeFilterModel(BiasedReadingsFilterModel):
     """The AHRS as an error-state EKF sees it; see the module docstring.
 
     ``sigma`` is the noise level of the data (the true one: this EKF knows the model).
     """
 
+    system_type = Attitude
     process_noise_dim = 3
     measurement_noise_dim = 6
 
-    def __init__(self, system: Attitude, sigma: float):
-        if not isinstance(system, Attitude):
-            raise TypeError(f"AttitudeFilterModel needs an Attitude, got {type(system).__name__}.")
-        self.system = system
-        self.sigma = check_noise_level("AttitudeFilterModel", sigma)
-        self.group = system.group
-        self.measurement_dim = system.measurement_dim
-        self.input_dim = system.input_dim
-
-    def drive(self, x, y, u, noise=None):
-        w = self.system.drive_from_measurement(y, u) - x[..., 9:12]
-        return w if noise is None else w - noise
-
-    def step(self, x, drive):
-        return self.system.step(x, drive)
-
-    def measure(self, x, drive, noise=None):
-        if noise is not None:  # (n1, n2) only: the gyro's noise is the process noise
-            noise = torch.cat((noise, torch.zeros_like(noise[..., :3])), dim=-1)
-        return self.system.measure(x, drive, noise)[..., :6]
-
-    def observation(self, y):
-        return y[..., :6]
+    def bias(self, x):
+        return x[..., 9:12]
 
     def process_noise_cov(self, dtype, device=None):
         s = self.system.gyro_noise * self.sigma
@@ -74,8 +54,10 @@ class AttitudeFilterModel(FilterModel):
 
     def measurement_noise_cov(self, dtype, device=None):
         s = self.system
-        std = torch.tensor([s.gravity_noise] * 3 + [s.magnetic_noise] * 3, dtype=dtype,
-                           device=device) * self.sigma
+        std = (
+            torch.tensor([s.gravity_noise] * 3 + [s.magnetic_noise] * 3, dtype=dtype, device=device)
+            * self.sigma
+        )
         return torch.diag(std**2)
 
     def initial_state(self, batch, dtype, device=None):

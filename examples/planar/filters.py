@@ -29,45 +29,25 @@ import math
 import torch
 
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.ekf import ErrorStateEKF, FilterModel, check_noise_level
+from manifold_nets.ekf import BiasedReadingsFilterModel, ErrorStateEKF
 
 from .system import Planar
 
 __all__ = ["PlanarEKF", "PlanarFilterModel"]
 
 
-class PlanarFilterModel(FilterModel):
+class PlanarFilterModel(BiasedReadingsFilterModel):
     """The planar vehicle as an error-state EKF sees it; see the module docstring.
 
     ``sigma`` is the noise level of the data (the true one: this EKF knows the model).
     """
 
+    system_type = Planar
     process_noise_dim = 2
     measurement_noise_dim = 2
 
-    def __init__(self, system: Planar, sigma: float):
-        if not isinstance(system, Planar):
-            raise TypeError(f"PlanarFilterModel needs a Planar, got {type(system).__name__}.")
-        self.system = system
-        self.sigma = check_noise_level("PlanarFilterModel", sigma)
-        self.group = system.group
-        self.measurement_dim = system.measurement_dim
-        self.input_dim = system.input_dim
-
-    def drive(self, x, y, u, noise=None):
-        w = self.system.drive_from_measurement(y, u) - x[..., -2:]
-        return w if noise is None else w - noise
-
-    def step(self, x, drive):
-        return self.system.step(x, drive)
-
-    def measure(self, x, drive, noise=None):
-        if noise is not None:  # n1 only: the odometry's noise is the process noise
-            noise = torch.cat((noise, torch.zeros_like(noise)), dim=-1)
-        return self.system.measure(x, drive, noise)[..., :2]
-
-    def observation(self, y):
-        return y[..., :2]
+    def bias(self, x):
+        return x[..., -2:]
 
     def process_noise_cov(self, dtype, device=None):
         s = self.system
@@ -79,14 +59,19 @@ class PlanarFilterModel(FilterModel):
 
     def _bias_std(self) -> list[float]:
         s = self.system
-        return [max(s.speed_bias_range, 1e-3) / math.sqrt(3),
-                max(s.turn_rate_bias_range, 1e-3) / math.sqrt(3)]
+        return [
+            max(s.speed_bias_range, 1e-3) / math.sqrt(3),
+            max(s.turn_rate_bias_range, 1e-3) / math.sqrt(3),
+        ]
 
     def _std(self, position, heading) -> torch.Tensor:
         """Standard deviations ``(..., 5)`` in the tangent's order from ``(...,)`` tensors."""
         bias = torch.tensor(self._bias_std(), dtype=position.dtype, device=position.device)
-        cols = [position, position, heading] if self.system.pose_group == "se2" else [
-            heading, position, position]
+        cols = (
+            [position, position, heading]
+            if self.system.pose_group == "se2"
+            else [heading, position, position]
+        )
         return torch.cat((torch.stack(cols, dim=-1), bias.expand(*position.shape, 2)), dim=-1)
 
     def initial_state(self, batch, dtype, device=None):
@@ -94,8 +79,10 @@ class PlanarFilterModel(FilterModel):
         1 m), heading ``pi / sqrt 3``, the biases' spreads."""
         x0 = self.group.identity((batch,), dtype=dtype, device=device)
         p = max(self.system.position_range / math.sqrt(3), 1.0)
-        std = self._std(torch.full((batch,), p, dtype=dtype, device=device),
-                        torch.full((batch,), math.pi / math.sqrt(3), dtype=dtype, device=device))
+        std = self._std(
+            torch.full((batch,), p, dtype=dtype, device=device),
+            torch.full((batch,), math.pi / math.sqrt(3), dtype=dtype, device=device),
+        )
         return x0, torch.diag_embed(std**2)
 
     def fixes_prior(self, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

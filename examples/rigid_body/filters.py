@@ -51,7 +51,7 @@ import torch
 from groups import SO3
 from groups.so3 import left_jacobian, left_jacobian_inverse, skew, unskew
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.ekf import FilterModel, check_noise_level
+from manifold_nets.ekf import BiasedReadingsFilterModel, check_noise_level
 
 from .system import RigidBody
 
@@ -134,7 +134,7 @@ def jl_times_v_derivative(phi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 # ------------------------------------------------------------------ the EKF's model
 
 
-class RigidBodyFilterModel(FilterModel):
+class RigidBodyFilterModel(BiasedReadingsFilterModel):
     """The rigid body as an error-state EKF sees it; see the module docstring.
 
     ``sigma`` is the noise level of the data (the true one: this EKF knows the model).
@@ -144,39 +144,24 @@ class RigidBodyFilterModel(FilterModel):
     deviations of the uniform laws, ``range / sqrt(3)``, for ``p`` and the biases.
     """
 
-    measurement_noise_dim = 6
-    process_noise_dim = 6
+    system_type = RigidBody
+    measurement_noise_dim = 6  # (w1, w2): the measured pose
+    process_noise_dim = 6  # (w3, w4): the gyro and velocity readings
 
     def __init__(
         self, system: RigidBody, sigma: float, rotation_std: float = math.pi / math.sqrt(3)
     ):
         _check_system(system, "RigidBodyFilterModel")
-        self.system = system
-        self.sigma = check_noise_level("RigidBodyFilterModel", sigma)
+        super().__init__(system, sigma)
         if not rotation_std > 0:
             raise ValueError(f"rotation_std must be > 0, got {rotation_std!r}.")
         self.rotation_std = float(rotation_std)
-        self.group = system.group
-        self.measurement_dim = system.measurement_dim
-        self.input_dim = system.input_dim
         self.dt = system.dt
 
     # model
 
-    def drive(self, x, y, u, noise=None):
-        w = self.system.drive_from_measurement(y, u) - x[..., 12:18]
-        return w if noise is None else w - noise
-
-    def step(self, x, drive):
-        return self.system.step(x, drive)
-
-    def measure(self, x, drive, noise=None):
-        if noise is not None:  # (w1, w2) only: the velocity noise is the process noise
-            noise = torch.cat((noise, torch.zeros_like(noise)), dim=-1)
-        return self.system.measure(x, drive, noise)
-
-    def residual(self, z, z_hat):
-        return self.system.measurement_residual(z, z_hat)[..., :6]
+    def bias(self, x):
+        return x[..., 12:18]
 
     def process_noise_cov(self, dtype, device=None):
         return self.sigma**2 * torch.eye(6, dtype=dtype, device=device)
