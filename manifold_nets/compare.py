@@ -41,7 +41,8 @@ _NOT_METRICS = {"sigma", "method", "sequences", "steps", "seconds"}
 
 
 def collect_runs(paths: Sequence[str | Path]) -> list[dict]:
-    """``[{"dir", "metrics", "curves"}]`` for every ``results/metrics.json`` under ``paths``."""
+    """``[{"dir", "metrics", "curves", "label"}]`` for every ``results/metrics.json`` under
+    ``paths``; the label is the run's method, made distinct where several share one."""
     runs = []
     for root in map(Path, paths):
         if not root.exists():
@@ -58,12 +59,28 @@ def collect_runs(paths: Sequence[str | Path]) -> list[dict]:
             cpath = path.with_name("curves.json")
             curves = json.loads(cpath.read_text()) if cpath.is_file() else {}
             runs.append({"dir": str(path.parent.parent), "metrics": metrics, "curves": curves})
-    return runs
+    return _name_runs(runs)
 
 
 def _label(run: dict) -> str:
-    m = run["metrics"]
-    return str(m.get("method") or "learned")
+    return run.get("label") or str(run["metrics"].get("method") or "learned")
+
+
+def _name_runs(runs: list[dict]) -> list[dict]:
+    """Gives each run a distinct ``label``: its method, with `` seed <s>`` added where runs of
+    one method differ in seed (a seed sweep), and `` #<i>`` where even that repeats."""
+    base = [str(r["metrics"].get("method") or "learned") for r in runs]
+    labels = list(base)
+    for i, run in enumerate(runs):
+        if base.count(base[i]) > 1 and "seed" in run["metrics"]:
+            labels[i] = f"{base[i]} seed {run['metrics']['seed']}"
+    seeded = list(labels)
+    for i, label in enumerate(seeded):
+        if seeded.count(label) > 1:
+            labels[i] = f"{label} #{seeded[: i + 1].count(label)}"
+    for run, label in zip(runs, labels):
+        run["label"] = label
+    return runs
 
 
 def _metric_names(rows: Sequence[dict]) -> list[str]:

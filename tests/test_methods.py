@@ -168,7 +168,7 @@ def test_the_unconstrained_ablation_really_leaves_so3(tmp_path):
 # ---------------------------------------------------------------------- the comparison
 
 
-def _fake_run(root: Path, method: str, sigmas, value: float, trained=False, size=(10, 50)):
+def _fake_run(root: Path, method: str, sigmas, value: float, trained=False, size=(10, 50), seed=0):
     res = root / "results"
     res.mkdir(parents=True)
     table = [
@@ -177,7 +177,7 @@ def _fake_run(root: Path, method: str, sigmas, value: float, trained=False, size
          "steps": size[1], "us/step": 3.0}
         for s in sigmas
     ]
-    metrics = {"name": "x", "method": method, "table": table, "skip_steps": 2}
+    metrics = {"name": "x", "method": method, "table": table, "skip_steps": 2, "seed": seed}
     if trained:
         metrics["checkpoint"] = "best.pt"
     (res / "metrics.json").write_text(json.dumps(metrics))
@@ -203,6 +203,29 @@ def test_comparison_table_ratios_and_figures(tmp_path):
     # without a raw run the measurement is a row of its own
     rows = compare.comparison_rows(compare.collect_runs([tmp_path / "learned"]))
     assert rows[0]["method"] == "measurement" and rows[0]["R"] == pytest.approx(0.2)
+
+
+def test_comparison_tells_runs_of_one_method_apart(tmp_path):
+    _fake_run(tmp_path / "ekf", "ekf", [0.1], 1.0)
+    for seed, value in ((0, 1.5), (1, 2.0)):  # a seed sweep of one observer
+        _fake_run(tmp_path / "sweep" / str(seed), "learned", [0.1], value, trained=True, seed=seed)
+    _fake_run(tmp_path / "again", "learned", [0.1], 3.0, trained=True, seed=1)  # a repeat
+    rows = compare.comparison_rows(compare.collect_runs([tmp_path]))
+    assert [r["method"] for r in rows] == [
+        "measurement",
+        "learned seed 1 #1",  # again/
+        "ekf",
+        "learned seed 0",  # sweep/0
+        "learned seed 1 #2",  # sweep/1
+        "learned seed 1 #1 / ekf",
+        "learned seed 0 / ekf",
+        "learned seed 1 #2 / ekf",
+    ]
+    by = {r["method"]: r for r in rows}
+    assert by["learned seed 0 / ekf"]["R"] == pytest.approx(1.5)
+    assert len({r["method"] for r in rows}) == len(rows)  # every row its own name
+    curves, _ = compare._step_curves(compare.collect_runs([tmp_path]), 0.1)
+    assert len(curves) == 4  # one line per run in the step figure, none overwritten
 
 
 def test_comparison_refuses_runs_on_different_sets(tmp_path, capsys):
