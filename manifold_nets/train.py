@@ -293,6 +293,12 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
     write_text_atomic(out_dir / "config.yaml", OmegaConf.to_yaml(resolved))
     sigmas = _sigmas(cfg)  # every check that needs no work, first
     check_schedule(cfg.train.schedule, float(cfg.train.lr), float(cfg.train.lr_min))
+    if cfg.train.init_from and cfg.train.resume:
+        raise ValueError(
+            f"train.init_from={cfg.train.init_from!r} and train.resume={cfg.train.resume!r}: "
+            "resume continues a run (its weights, optimizer and epoch), init_from starts a new "
+            "one from a model's weights; set only one."
+        )
     if cfg.train.threads is not None:
         torch.set_num_threads(int(cfg.train.threads))
     device = resolve_device(cfg.train.device)
@@ -342,8 +348,14 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
         )
         log.info("evaluating %s (epoch %s)", path, ckpt["epoch"])
     elif meth.name == "learned" and learned:
-        parts = load_training_data(system, cfg)
         t = cfg.train
+        if t.init_from:
+            path = resolve_checkpoint(_abs(t.init_from), name="best.pt")
+            ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=device)
+            model.load_state_dict(ckpt["model"])
+            metrics["init_from"] = str(path)
+            log.info("starting from the weights of %s (epoch %s)", path, ckpt["epoch"])
+        parts = load_training_data(system, cfg)
         if t.compile:
             model.compile_step()
             log.info("the observer's step is compiled (torch.compile): the first batch waits")

@@ -116,6 +116,10 @@ class TrainSettings:
     compile: bool = False
     #: Continue from a checkpoint: a ``last.pt`` file or the run folder that holds one.
     resume: Optional[str] = None
+    #: Start from a trained model's weights (a checkpoint, or a run folder: its ``best.pt``)
+    #: with a fresh optimizer and epoch count: fine-tuning, e.g. on other data. The model must
+    #: be the same (checked); not together with ``resume``.
+    init_from: Optional[str] = None
     #: Show a progress bar with the running loss (on a terminal).
     progress: bool = True
 

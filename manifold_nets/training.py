@@ -15,7 +15,7 @@ Files written in ``out_dir``:
 * ``checkpoints/last.pt`` after every epoch: weights, optimizer, epoch, the generator states,
   the best validation loss and the history: everything to resume (``resume=``) exactly as if
   the run had not been interrupted;
-* ``checkpoints/best.pt`` whenever the validation loss improves (epoch 0 is the untrained
+* ``checkpoints/best.pt`` whenever the validation loss improves (epoch 0 is the starting
   model, so a best checkpoint exists from the start);
 * ``log.csv`` and ``log.json``: one row per epoch (train loss, validation loss, best, time).
 
@@ -318,7 +318,7 @@ def fit(
     if start == 1:
         v0 = validation_loss(model, val, eval_batch_size)
         if not math.isfinite(v0):
-            raise diverged("validation loss of the untrained model", v0, 0)
+            raise diverged("validation loss of the starting model", v0, 0)
         best = {"epoch": 0, "val_loss": v0}
         history.append(
             {
@@ -333,7 +333,7 @@ def fit(
         )
         save_checkpoint(best_path, payload(0, full=False))
         _write_logs(out_dir, history)
-        log.info("epoch 0 (untrained): val loss %.5g", v0)
+        log.info("epoch 0 (before any step): val loss %.5g", v0)
 
     n = len(train)
     model.train()

@@ -192,6 +192,41 @@ def test_resume_through_the_config(tmp_path):
     assert ckpt["epoch"] == 2 and ckpt["config"]["train"]["epochs"] == 2
 
 
+def test_init_from_fine_tunes_a_trained_model_on_other_data(tmp_path):
+    cache = tmp_path / "data"
+    first = run(_compose(*_tiny(cache, "train.epochs=2")), tmp_path / "first")
+    # the run starts from the first run's best weights, with a fresh optimizer and epochs
+    m = run(
+        _compose(*_tiny(cache, "train.lr=1e-4", f"train.init_from={tmp_path / 'first'}")),
+        tmp_path / "tuned",
+    )
+    assert m["init_from"] == str(tmp_path / "first" / "checkpoints" / "best.pt")
+    log = json.loads((tmp_path / "tuned" / "log.json").read_text())
+    assert [r["epoch"] for r in log] == [0, 1] and log[1]["lr"] == 1e-4
+    # epoch 0 (before any step) is the first run's best model on the same validation set (a
+    # trained one: a model freshly built with the same seed would score the untrained loss)
+    assert first["best_epoch"] > 0
+    assert log[0]["val_loss"] == pytest.approx(first["best_val_loss"], rel=1e-6)
+    # and on other data (longer sequences: what fine-tuning is for)
+    run(
+        _compose(*_tiny(cache, "dataset.length=12", f"train.init_from={tmp_path / 'first'}")),
+        tmp_path / "longer",
+    )
+    with pytest.raises(CheckpointError, match="hidden_size"):  # another model
+        run(
+            _compose(*_tiny(cache, "model.hidden_size=6", f"train.init_from={tmp_path / 'first'}")),
+            tmp_path / "other",
+        )
+    with pytest.raises(ValueError, match="set only one"):
+        run(
+            _compose(
+                *_tiny(cache, f"train.init_from={tmp_path / 'first'}", f"train.resume={tmp_path}")
+            ),
+            tmp_path / "both",
+        )
+    assert not (tmp_path / "both" / "checkpoints").exists()
+
+
 def test_noise_levels_mix_measurements_per_sequence(tmp_path):
     from hydra.utils import instantiate
 
