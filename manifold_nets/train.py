@@ -269,6 +269,15 @@ def _sigmas(cfg: DictConfig) -> list[float]:
     return sigmas
 
 
+def _load_weights(model: ResidualObserver, where: str, device) -> tuple[Path, dict]:
+    """Loads the weights of ``where`` (a checkpoint, or a run folder: its ``best.pt``) into
+    ``model``, checking it is the same model; returns the file and the checkpoint."""
+    path = resolve_checkpoint(_abs(where), name="best.pt")
+    ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=device)
+    model.load_state_dict(ckpt["model"])
+    return path, ckpt
+
+
 def check_config(cfg: DictConfig) -> None:
     """Raises ``ValueError`` unless ``cfg`` fits :class:`~manifold_nets.train_config.RunConfig`.
 
@@ -338,9 +347,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
             sum(p.numel() for p in model.parameters()),
         )
     if learned and cfg.eval.checkpoint:
-        path = resolve_checkpoint(_abs(cfg.eval.checkpoint), name="best.pt")
-        ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=device)
-        model.load_state_dict(ckpt["model"])
+        path, ckpt = _load_weights(model, cfg.eval.checkpoint, device)
         metrics.update(
             checkpoint=str(path),
             best_epoch=ckpt["epoch"],
@@ -350,9 +357,7 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
     elif meth.name == "learned" and learned:
         t = cfg.train
         if t.init_from:
-            path = resolve_checkpoint(_abs(t.init_from), name="best.pt")
-            ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=device)
-            model.load_state_dict(ckpt["model"])
+            path, ckpt = _load_weights(model, t.init_from, device)
             metrics["init_from"] = str(path)
             log.info("starting from the weights of %s (epoch %s)", path, ckpt["epoch"])
         parts = load_training_data(system, cfg)

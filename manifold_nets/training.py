@@ -49,13 +49,13 @@ from .losses import embedding_mse
 from .observer import ResidualObserver
 
 __all__ = [
-    "TrainingDiverged",
     "FitResult",
-    "fit",
+    "TrainingDiverged",
     "check_schedule",
+    "fit",
     "learning_rate",
-    "validation_loss",
     "resolve_checkpoint",
+    "validation_loss",
 ]
 
 log = logging.getLogger(__name__)
@@ -221,8 +221,9 @@ def fit(
     ``sigma ~ U[lo, hi]`` to every training batch through ``system.apply_noise(measurements,
     noise)`` (noise ``(N, T, system.noise_dim)``, already scaled); validation stays as given.
     ``schedule`` (``constant`` or ``cosine``, down to ``lr_min``) sets each epoch's learning
-    rate through :func:`learning_rate`. ``config`` (plain data) is stored in the checkpoints. ``resume`` is a ``last.pt`` (or a run
-    folder holding one) of the same model; training continues after its epoch.
+    rate through :func:`learning_rate`. ``config`` (plain data) is stored in the checkpoints.
+    ``resume`` is a ``last.pt`` (or a run folder holding one) of the same model; training
+    continues after its epoch.
     """
     for name, val in (
         ("epochs", epochs),
@@ -339,10 +340,9 @@ def fit(
     model.train()
     for epoch in range(start, epochs + 1):
         t0 = time.perf_counter()
+        rate = learning_rate(epoch, epochs=epochs, lr=lr, schedule=schedule, lr_min=lr_min)
         for group in opt.param_groups:
-            group["lr"] = learning_rate(
-                epoch, epochs=epochs, lr=lr, schedule=schedule, lr_min=lr_min
-            )
+            group["lr"] = rate
         perm = torch.randperm(n, generator=gen)
         batches = list(perm.split(batch_size))
         if max_batches is not None:
