@@ -15,6 +15,15 @@ The minimum a subclass writes (manif's "minimum API"):
 Derived once here, overridable for speed: ``rplus``, ``rminus``, ``between``, ``adjoint``,
 ``distance``, ``random``, ``check_member``, ``from_embedding``.
 
+The factors view: every group is a product of named factors. A :class:`~groups.Product` has its
+own; any other group is its single factor named ``"x"``. ``factors``, ``factor_names``,
+``index``, ``factor``, ``element_slice``, ``tangent_slice`` and ``embedding_slice`` answer
+"which factor, and where does it sit" in a flattened element, a tangent vector and an
+embedding, so code that works factor by factor (an observer's per-factor update, per-factor
+errors) never asks whether a group is a product. ``embedding_is_flat`` says whether ``embed``
+is the flattened element (SO(2), SO(3), R^n and products of them; not SE(3)): declared by the
+group, checked by ``groups.testing``.
+
 Perturbations are on the **right**, as in manif and Theseus: ``rplus(x, v) = x · exp(v)`` is the
 observer's update, ``rminus(y, x) = log(x^-1 · y)`` so that ``rplus(x, rminus(y, x)) == y``.
 """
@@ -22,6 +31,7 @@ observer's update, ``rminus(y, x) = log(x^-1 · y)`` so that ``rplus(x, rminus(y
 from __future__ import annotations
 
 import abc
+import math
 from collections.abc import Sequence
 
 import torch
@@ -53,6 +63,11 @@ class LieGroup(abc.ABC):
     #: to place adversarial angles such as 0 and pi, and to know where ``log`` is injective).
     #: Empty for vector spaces.
     angle_slices: tuple[slice, ...] = ()
+    #: Whether ``embed(x)`` is ``x`` flattened (row-major), so ``embedding_dim`` equals the number
+    #: of entries of an element. Declared by the group (False unless it says so) and checked by
+    #: ``groups.testing.check_embedding``; the observer then feeds the flat state to its network
+    #: without embedding it factor by factor.
+    embedding_is_flat: bool = False
 
     # ------------------------------------------------------------------ minimum API
 
@@ -175,6 +190,57 @@ class LieGroup(abc.ABC):
         """The inverse of ``embed``, checked: raises :class:`GroupMembershipError` off the group."""
         self._check_shape(z, (self.embedding_dim,), "from_embedding", "an embedded element")
         return self.check_member(self.unembed(z), atol=atol)
+
+    # ------------------------------------------------------------------ the factors view
+
+    @property
+    def factors(self) -> tuple[LieGroup, ...]:
+        """The factor groups: a :class:`~groups.Product`'s, or ``(self,)``."""
+        return (self,)
+
+    @property
+    def factor_names(self) -> tuple[str, ...]:
+        """One name per factor: a Product's ``names`` (``factor0``, ... when unnamed), or ``("x",)``."""
+        return ("x",)
+
+    def index(self, key: int | str) -> int:
+        """The position of a factor given by name or index (negative counts from the end).
+
+        Raises ``KeyError`` for an unknown name, ``IndexError`` for an index out of range; both
+        name the factors there are.
+        """
+        names = self.factor_names
+        if isinstance(key, str):
+            if key not in names:
+                raise KeyError(f"{self!r} has no factor named {key!r}; its factors: {list(names)}.")
+            return names.index(key)
+        if isinstance(key, bool) or not isinstance(key, int) or not -len(names) <= key < len(names):
+            raise IndexError(
+                f"{self!r} has {len(names)} factor{'s' if len(names) != 1 else ''} {list(names)}, "
+                f"no factor {key!r}."
+            )
+        return key % len(names)
+
+    def factor(self, key: int | str) -> LieGroup:
+        """A factor group by name or index."""
+        return self.factors[self.index(key)]
+
+    def _factor_offsets(self, sizes: Sequence[int], key: int | str) -> slice:
+        i = self.index(key)
+        start = sum(sizes[:i])
+        return slice(start, start + sizes[i])
+
+    def element_slice(self, key: int | str) -> slice:
+        """Where factor ``key``'s flattened element sits in the flattened element."""
+        return self._factor_offsets([math.prod(f.element_shape) for f in self.factors], key)
+
+    def tangent_slice(self, key: int | str) -> slice:
+        """Where factor ``key`` sits in a tangent vector."""
+        return self._factor_offsets([f.tangent_dim for f in self.factors], key)
+
+    def embedding_slice(self, key: int | str) -> slice:
+        """Where factor ``key`` sits in an embedded element."""
+        return self._factor_offsets([f.embedding_dim for f in self.factors], key)
 
     # ------------------------------------------------------------------ helpers
 

@@ -16,6 +16,8 @@ __all__ = ["Euclidean"]
 class Euclidean(LieGroup):
     """The additive group ``R^n``."""
 
+    embedding_is_flat = True
+
     def __init__(self, n: int):
         if not isinstance(n, int) or n < 1:
             raise ValueError(f"Euclidean(n) needs a positive integer n, got {n!r}.")

@@ -48,7 +48,7 @@ class Product(LieGroup):
                     f"Product got {len(factors)} factors but names {names!r}; give one distinct "
                     "name per factor."
                 )
-        self.factors = tuple(factors)
+        self._factors = tuple(factors)
         self.names = names
         self._numel = [math.prod(f.element_shape) for f in factors]
         self._el = _offsets(self._numel)
@@ -57,6 +57,7 @@ class Product(LieGroup):
         self.element_shape = (sum(self._numel),)
         self.tangent_dim = sum(f.tangent_dim for f in factors)
         self.embedding_dim = sum(f.embedding_dim for f in factors)
+        self.embedding_is_flat = all(f.embedding_is_flat for f in factors)
         self.angle_slices = tuple(
             slice(t.start + a.start, t.start + a.stop)
             for f, t in zip(self.factors, self._tan)
@@ -67,32 +68,23 @@ class Product(LieGroup):
         inner = ", ".join(map(repr, self.factors))
         return f"Product({inner}" + (f", names={self.names!r})" if self.names else ")")
 
-    # ------------------------------------------------------------------ factor access
+    # ------------------------------------------------------------------ the factors view
 
-    def index(self, key: int | str) -> int:
-        """The position of a factor given by index or name."""
-        if isinstance(key, str):
-            if not self.names or key not in self.names:
-                raise KeyError(f"{self!r} has no factor named {key!r}; names: {self.names}.")
-            return self.names.index(key)
-        if not -len(self.factors) <= key < len(self.factors):
-            raise IndexError(f"{self!r} has {len(self.factors)} factors, no factor {key}.")
-        return key % len(self.factors)
+    @property
+    def factors(self) -> tuple[LieGroup, ...]:  # type: ignore[override]
+        return self._factors
 
-    def factor(self, key: int | str) -> LieGroup:
-        """A factor group by index or name."""
-        return self.factors[self.index(key)]
+    @property
+    def factor_names(self) -> tuple[str, ...]:  # type: ignore[override]
+        return self.names or tuple(f"factor{i}" for i in range(len(self._factors)))
 
     def tangent_slice(self, key: int | str) -> slice:
-        """Where factor ``key`` sits in a tangent vector."""
         return self._tan[self.index(key)]
 
     def embedding_slice(self, key: int | str) -> slice:
-        """Where factor ``key`` sits in an embedded element."""
         return self._emb[self.index(key)]
 
     def element_slice(self, key: int | str) -> slice:
-        """Where factor ``key``'s flattened element sits in a product element."""
         return self._el[self.index(key)]
 
     def split(self, x: torch.Tensor) -> list[torch.Tensor]:

@@ -39,6 +39,7 @@ class SO2(MatrixLieGroup):
     matrix_dim = 2
     tangent_dim = 1
     embedding_dim = 4
+    embedding_is_flat = True
     angle_slices = (slice(0, 1),)
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:

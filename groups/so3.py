@@ -132,6 +132,7 @@ class SO3(MatrixLieGroup):
     matrix_dim = 3
     tangent_dim = 3
     embedding_dim = 9
+    embedding_is_flat = True
     angle_slices = (slice(0, 3),)
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
