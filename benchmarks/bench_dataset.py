@@ -36,7 +36,7 @@ from scipy.integrate import solve_ivp  # noqa: E402
 from examples.rigid_body import RigidBody  # noqa: E402
 from examples.rigid_body.kinematics import _rhs, exact_rollout, rk45_rollout  # noqa: E402
 from manifold_nets.data import save_dataset  # noqa: E402
-from manifold_nets.generate import make_dataset  # noqa: E402
+from manifold_nets.datasets import make_dataset  # noqa: E402
 
 SPLITS = {"train": 0.8, "val": 0.1, "test": 0.1}
 

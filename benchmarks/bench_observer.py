@@ -48,7 +48,7 @@ import torch
 
 from groups import SO3, Euclidean, Product
 from manifold_nets.losses import embedding_mse
-from manifold_nets.observer import ResidualObserver
+from manifold_nets import ObserverInputs, ResidualObserver
 
 GROUP = Product(SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "b_omega", "b_v"))
 UPDATE = {"b_omega": "absolute", "b_v": "absolute"}
@@ -87,7 +87,7 @@ def train_step_variants(hidden: int, batch: int, steps: int) -> dict:
         torch.manual_seed(0)
         obs = ResidualObserver(
             GROUP, MEAS, hidden_size=hidden, num_layers=2, update=UPDATE, state_dtype=state_dtype,
-            innovation=innovation,
+            inputs=ObserverInputs(innovation or {}),
         )
         if compiled:
             obs.compile_step()

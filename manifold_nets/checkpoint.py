@@ -25,7 +25,15 @@ import torch
 
 from .atomic import atomic_open
 
-__all__ = ["FORMAT", "CheckpointError", "save_checkpoint", "load_checkpoint", "check_signature"]
+__all__ = [
+    "FORMAT",
+    "CheckpointError",
+    "save_checkpoint",
+    "load_checkpoint",
+    "check_signature",
+    "resolve_checkpoint",
+    "load_weights",
+]
 
 FORMAT = "manifold_nets.checkpoint/1"
 
@@ -93,3 +101,28 @@ def load_checkpoint(
     if expected_signature is not None:
         check_signature(ckpt["signature"], expected_signature, where=str(path))
     return ckpt
+
+
+def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:
+    """A checkpoint file from a file path or a run folder (``<dir>/checkpoints/<name>``)."""
+    p = Path(path)
+    if p.is_dir():
+        for cand in (p / "checkpoints" / name, p / name):
+            if cand.is_file():
+                return cand
+        raise CheckpointError(f"no {name} in the run folder {p} (looked in {p}/checkpoints/).")
+    return p
+
+
+def load_weights(
+    model: torch.nn.Module, where: str | os.PathLike, map_location: str | torch.device = "cpu"
+) -> tuple[Path, dict[str, Any]]:
+    """Loads the weights of ``where`` (a checkpoint, or a run folder: its ``best.pt``) into
+    ``model`` after checking the checkpoint is for the same model (``model.signature()``).
+
+    Returns the file and the checkpoint's contents.
+    """
+    path = resolve_checkpoint(where, name="best.pt")
+    ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=map_location)
+    model.load_state_dict(ckpt["model"])
+    return path, ckpt

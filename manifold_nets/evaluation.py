@@ -22,29 +22,21 @@ the group on a log scale) as a PNG with matplotlib's Agg canvas (no display need
 
 from __future__ import annotations
 
-import csv
 import math
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import torch
 
-from groups import LieGroup, Product
-
-from .atomic import atomic_open, write_text_atomic
 from .data import TrajectoryDataset
-from .observer import ResidualObserver, factor_names
+from .losses import factor_errors
+from .observer import ResidualObserver
 
 __all__ = [
     "EvalResult",
     "ObserverEstimator",
     "rollout",
-    "factor_errors",
     "evaluate",
-    "write_table",
-    "markdown_table",
-    "plot_errors",
 ]
 
 
@@ -91,19 +83,6 @@ class ObserverEstimator:
 
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
         return rollout(self.model, data, self.batch_size)
-
-
-def factor_errors(
-    group: LieGroup, estimates: torch.Tensor, states: torch.Tensor
-) -> dict[str, torch.Tensor]:
-    """``{factor name: ||pi_f(xhat) - pi_f(x)|| (*batch,)}`` (the default of ``System.metrics``)."""
-    diff = group.embed(estimates) - group.embed(states.to(estimates))
-    if isinstance(group, Product):
-        return {
-            name: torch.linalg.vector_norm(diff[..., group.embedding_slice(i)], dim=-1)
-            for i, name in enumerate(factor_names(group))
-        }
-    return {"x": torch.linalg.vector_norm(diff, dim=-1)}
 
 
 def _pad_front(t: torch.Tensor, length: int) -> torch.Tensor:
@@ -191,93 +170,3 @@ def evaluate(
     row["sequences"] = n
     row["steps"] = t
     return EvalResult(row, curves, skip, seconds)
-
-
-def _fmt(v) -> str:
-    if isinstance(v, float):
-        if math.isnan(v):
-            return ""
-        if v != 0 and (abs(v) < 1e-3 or abs(v) >= 1e5):
-            return f"{v:.1e}"
-        return f"{v:.4g}" if abs(v) < 100 else f"{v:.2f}"
-    return str(v)
-
-
-def _columns(rows: Sequence[Mapping]) -> list[str]:
-    cols: list[str] = []
-    for r in rows:
-        cols += [c for c in r if c not in cols]
-    return cols
-
-
-def markdown_table(rows: Sequence[Mapping], columns: Sequence[str] | None = None) -> str:
-    """Rows (dicts) as a Markdown table; floats rounded for reading (the CSV keeps them all)."""
-    cols = list(columns) if columns is not None else _columns(rows)
-    lines = ["| " + " | ".join(cols) + " |", "|" + "|".join("---:" for _ in cols) + "|"]
-    for r in rows:
-        lines.append("| " + " | ".join(_fmt(r.get(c, "")) for c in cols) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def write_table(
-    rows: Sequence[Mapping], stem: str | Path, title: str | None = None
-) -> tuple[Path, Path]:
-    """Writes ``<stem>.csv`` (full precision) and ``<stem>.md``; returns both paths."""
-    stem = Path(stem)
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    cols = _columns(rows)
-    csv_path, md_path = stem.with_suffix(".csv"), stem.with_suffix(".md")
-    with atomic_open(csv_path, "w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=cols)
-        w.writeheader()
-        w.writerows(rows)
-    md = (f"# {title}\n\n" if title else "") + markdown_table(rows, cols)
-    write_text_atomic(md_path, md)
-    return csv_path, md_path
-
-
-def plot_errors(result: EvalResult, path: str | Path, title: str | None = None) -> Path:
-    """The paper's figure: mean error against the step per factor (estimate and measurement) and
-    the distance of the estimate from the group (log scale), from step ``skip`` on."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    names = [k[: -len(" est")] for k in result.curves if k.endswith(" est")]
-    panels = names + ["membership"]
-    cols = 2 if len(panels) > 1 else 1
-    rows = math.ceil(len(panels) / cols)
-    fig = Figure(figsize=(5.0 * cols, 3.0 * rows), layout="constrained")
-    FigureCanvasAgg(fig)
-    start = result.skip
-    for i, name in enumerate(panels):
-        ax = fig.add_subplot(rows, cols, i + 1)
-        if name == "membership":
-            c = result.curves["membership"][start:].clamp_min(1e-300)
-            k = torch.arange(start, start + len(c))
-            ax.semilogy(k, c, color="C2", label="estimate")
-            ax.set_title("distance of the estimate from the group")
-            ax.set_ylabel("membership error")
-        else:
-            est = result.curves[f"{name} est"][start:]
-            k = torch.arange(start, start + len(est))
-            if f"{name} meas" in result.curves:
-                ax.plot(
-                    k,
-                    result.curves[f"{name} meas"][start:],
-                    color="C1",
-                    lw=0.8,
-                    label="measurement",
-                )
-            ax.plot(k, est, color="C0", lw=1.0, label="estimate")
-            ax.set_title(f"error in {name}")
-            ax.set_ylabel("mean error")
-            ax.set_ylim(bottom=0)
-        ax.set_xlabel("step k")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
-    if title:
-        fig.suptitle(title)
-    path = Path(path)
-    with atomic_open(path, "wb") as f:
-        fig.savefig(f, format=path.suffix.lstrip(".") or "png", dpi=110)
-    return path

@@ -12,7 +12,7 @@ import torch
 
 from groups import LieGroup
 
-__all__ = ["embedding_squared_error", "embedding_mse"]
+__all__ = ["embedding_squared_error", "embedding_mse", "factor_errors"]
 
 
 def _check(group: LieGroup, estimates: torch.Tensor, states: torch.Tensor) -> None:
@@ -48,3 +48,17 @@ def embedding_mse(
         )
     sq = embedding_squared_error(group, estimates[:, skip:], states[:, skip:])
     return sq.mean() / group.embedding_dim
+
+
+def factor_errors(
+    group: LieGroup, estimates: torch.Tensor, states: torch.Tensor
+) -> dict[str, torch.Tensor]:
+    """``{factor name: ||pi_f(xhat) - pi_f(x)||}``, each ``(*batch,)``, from two
+    ``(*batch, *element_shape)``; the names are ``group.factor_names`` (``x`` for a group that
+    is not a product)."""
+    _check(group, estimates, states)
+    diff = group.embed(estimates) - group.embed(states.to(estimates))
+    return {
+        name: torch.linalg.vector_norm(diff[..., group.embedding_slice(i)], dim=-1)
+        for i, name in enumerate(group.factor_names)
+    }

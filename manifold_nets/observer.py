@@ -8,7 +8,8 @@ the group::
     v_k        = T(embed(xhat_k), y_{k+1}, u_k)
     xhat_{k+1} = xhat_k · exp(v_k)          ("residual", the paper's update)
 
-The update is chosen per factor of a :class:`groups.Product` (a non-product group is one factor):
+The update is chosen per factor (``group.factor_names``; a non-product group is its one factor
+``x``), as ``update={name: rule}``:
 
 * ``"residual"``: ``x_f <- x_f · exp(v_f)`` (``rplus``; for ``R^n`` this is ``x_f + v_f``);
 * ``"absolute"``: ``x_f <- exp(v_f)``, the factor is set to the prediction (for ``R^n`` this is
@@ -21,172 +22,36 @@ returns the estimates ``(N, T+1, *group.element_shape)``, ``xhat_0 .. xhat_T``.
 The group state has its own dtype (``state_dtype``, float64 by default), separate from the
 network's (its parameters' dtype, float32 by default): the network reads ``embed(xhat)`` cast
 to its dtype and its output is cast to the state dtype before the update, so the estimate stays
-on the group to rounding of the state dtype (~1e-14 after 1000 steps in float64).
+on the group to the rounding of the state dtype.
 
-Speed: the rollout is the hot loop of training, evaluation and online use. Inputs are checked
-once before the loop; inside it each step is a handful of fused kernels (``torch.gru_cell`` per
-layer, a ``Linear``, the group update on precomputed factor slices) and no validation.
-Consecutive ``R^n`` factors with the same rule are merged into one slice.
+The rollout is the hot loop of training, evaluation and online use: inputs are checked once
+before the loop; inside it each step is the core's step, the group update on precomputed factor
+slices (consecutive ``R^n`` factors with the same rule merged into one) and no validation.
 
-Optional innovation input (an extension; off by default, the paper's inputs are
-``(embed(xhat), y, u)``): when a measurement holds the embedding of some factors directly (the
-rigid body's ``y`` starts with ``vec R^m`` and ``p^m``), ``innovation={"R": (0, 9), "p": (9, 12)}``
-names those factors and where they sit in ``y``; the core then also reads, per factor, the
-tangent vector ``rminus(m_f, xhat_f) = log(xhat_f^-1 · m_f)`` from the estimate to the measured
-factor ``m_f = unembed(y[a:b])``: the innovation of a classical observer, which turns the
-nonlinear comparison of two embedded elements into an input the network can use linearly.
-
-Optional relative-only factors (an extension; needs the innovation of those factors):
-``relative_only=["p"]`` leaves the absolute estimate and measurement of the factor ``p`` out of
-the core's input; the core sees the factor only through its innovation ``p^m - phat``. For the
-rigid body, whose motion does not depend on where it is, the observer is then invariant to
-translations of the whole trajectory, so it does not leave the range of positions it was
-trained on when it runs longer than the training sequences.
-
-The core is replaceable: any :class:`RecurrentCore` (``initial_hidden`` and ``step``) works;
-:class:`GRUCore` is the paper's (GRU 36 -> 512, GRU 512 -> 512, Linear 512 -> 12 for the rigid
-body, sizes and layer count configurable).
+What the core reads besides ``(embed(xhat), y, u)`` (innovation terms, relative-only factors) is
+an :class:`~manifold_nets.inputs.ObserverInputs`; the core is any
+:class:`~manifold_nets.cores.RecurrentCore` (default the paper's :class:`~manifold_nets.cores.GRUCore`).
 """
 
 from __future__ import annotations
 
-import abc
 import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
 import torch
 from torch import nn
 
-from groups import Euclidean, LieGroup, Product
+from groups import Euclidean, LieGroup
 
-__all__ = [
-    "UPDATE_RULES",
-    "core_input_size",
-    "RecurrentCore",
-    "GRUCore",
-    "ObserverState",
-    "ResidualObserver",
-    "factor_names",
-]
+from .cores import GRUCore, Hidden, RecurrentCore
+from .inputs import ObserverInputs
+
+__all__ = ["UPDATE_RULES", "ObserverState", "ResidualObserver"]
 
 #: The per-factor update rules.
 UPDATE_RULES = ("residual", "absolute")
-
-Hidden = tuple[torch.Tensor, ...]
-
-
-def factor_names(group: LieGroup) -> tuple[str, ...]:
-    """Names of the factors of ``group``: a Product's ``names`` (``factor0``, ... when unnamed),
-    or ``("x",)`` for a group that is not a product (the keys of ``System.metrics``)."""
-    if isinstance(group, Product):
-        return (
-            tuple(group.names)
-            if group.names
-            else tuple(f"factor{i}" for i in range(len(group.factors)))
-        )
-    return ("x",)
-
-
-# ---------------------------------------------------------------------- cores
-
-
-class RecurrentCore(nn.Module, abc.ABC):
-    """A recurrent map ``(input (B, input_size), hidden) -> (output (B, output_size), hidden)``.
-
-    The observer's input is ``cat(embed(xhat_k), y_{k+1}, u_k)`` and its output ``v_k``.
-    ``hidden`` is a tuple of tensors whose first dimension is the batch. Subclass it to replace
-    the paper's GRU stack; ``signature()`` identifies the architecture in checkpoints.
-    """
-
-    input_size: int
-    output_size: int
-
-    @abc.abstractmethod
-    def initial_hidden(
-        self, batch: int, device: torch.device | str | None = None, dtype: torch.dtype | None = None
-    ) -> Hidden:
-        """The hidden state before the first step (zeros for a GRU)."""
-
-    @abc.abstractmethod
-    def step(self, inp: torch.Tensor, hidden: Hidden) -> tuple[torch.Tensor, Hidden]:
-        """One step; no validation (the observer checks its inputs once, before the loop)."""
-
-    def signature(self) -> dict:
-        """What must match for a checkpoint of this core to load: type and sizes."""
-        return {
-            "type": type(self).__name__,
-            "input_size": self.input_size,
-            "output_size": self.output_size,
-        }
-
-
-class GRUCore(RecurrentCore):
-    """A stack of GRU layers and a linear head (the paper's Table): ``input -> H -> ... -> output``.
-
-    Parameters live in a ``torch.nn.GRU`` (same names, same initialisation, so an open-loop
-    ``nn.GRU`` run over the same inputs gives the same hidden states) and an ``nn.Linear``;
-    a step calls ``torch.gru_cell`` once per layer.
-    """
-
-    def __init__(
-        self, input_size: int, output_size: int, hidden_size: int = 512, num_layers: int = 2
-    ):
-        super().__init__()
-        for name, val in (
-            ("input_size", input_size),
-            ("output_size", output_size),
-            ("hidden_size", hidden_size),
-            ("num_layers", num_layers),
-        ):
-            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-                raise ValueError(f"GRUCore: {name} must be a positive integer, got {val!r}.")
-        self.input_size = input_size
-        self.output_size = output_size
-        self.hidden_size = hidden_size
-        self.num_layers = num_layers
-        self.gru = nn.GRU(input_size, hidden_size, num_layers)
-        self.head = nn.Linear(hidden_size, output_size)
-
-    def initial_hidden(self, batch, device=None, dtype=None) -> Hidden:
-        w = self.head.weight
-        shape = (batch, self.hidden_size)
-        return tuple(
-            torch.zeros(
-                shape,
-                device=w.device if device is None else device,
-                dtype=w.dtype if dtype is None else dtype,
-            )
-            for _ in range(self.num_layers)
-        )
-
-    def _layers(self) -> list[tuple[torch.Tensor, ...]]:
-        g = self.gru
-        return [
-            (
-                getattr(g, f"weight_ih_l{i}"),
-                getattr(g, f"weight_hh_l{i}"),
-                getattr(g, f"bias_ih_l{i}"),
-                getattr(g, f"bias_hh_l{i}"),
-            )
-            for i in range(self.num_layers)
-        ]
-
-    def step(self, inp: torch.Tensor, hidden: Hidden) -> tuple[torch.Tensor, Hidden]:
-        out = []
-        h = inp
-        for (w_ih, w_hh, b_ih, b_hh), h_prev in zip(self._layers(), hidden):
-            h = torch.gru_cell(h, h_prev, w_ih, w_hh, b_ih, b_hh)
-            out.append(h)
-        return self.head(h), tuple(out)
-
-    def signature(self) -> dict:
-        return {
-            **super().signature(),
-            "hidden_size": self.hidden_size,
-            "num_layers": self.num_layers,
-        }
 
 
 # ---------------------------------------------------------------------- the group update
@@ -202,49 +67,30 @@ class _Block:
     rule: str
 
 
-def _parse_rules(group: LieGroup, update: str | Mapping | Sequence | None) -> tuple[str, ...]:
-    """One rule per factor from a rule, a ``{name or index: rule}`` mapping or a sequence."""
-    names = factor_names(group)
-    n = len(names)
-    if update is None:
-        rules = ["residual"] * n
-    elif isinstance(update, str):
-        rules = [update] * n
-    elif isinstance(update, Mapping):
-        rules = ["residual"] * n
-        for key, rule in update.items():
-            if isinstance(key, str) and key in names:
-                i = names.index(key)
-            elif isinstance(key, int) or (isinstance(key, str) and key.lstrip("-").isdigit()):
-                i = int(key)
-                if not -n <= i < n:
-                    raise ValueError(f"update: {group!r} has {n} factor(s), no factor {i}.")
-            else:
-                raise ValueError(
-                    f"update names a factor {key!r} that {group!r} does not have; its factors "
-                    f"are {list(names)} (or indices 0..{n - 1})."
-                )
-            rules[i] = rule
-    else:
-        rules = list(update)
-        if len(rules) != n:
-            raise ValueError(
-                f"update gives {len(rules)} rule(s) for the {n} factor(s) {list(names)}."
-            )
+def _parse_rules(group: LieGroup, update: Mapping[str, str] | None) -> tuple[str, ...]:
+    """One rule per factor from ``{factor name: rule}``; factors not named are ``residual``."""
+    names = group.factor_names
+    update = dict(update or {})
+    unknown = [k for k in update if k not in names]
+    if unknown:
+        raise ValueError(
+            f"update names factors {unknown} that {group!r} does not have; its factors are "
+            f"{list(names)}."
+        )
+    rules = tuple(update.get(name, "residual") for name in names)
     for name, rule in zip(names, rules):
         if rule not in UPDATE_RULES:
             raise ValueError(
                 f"update rule {rule!r} for factor {name!r} is not one of {UPDATE_RULES} "
                 "(residual: x·exp(v); absolute: x = exp(v), for R^n x = v)."
             )
-    return tuple(rules)
+    return rules
 
 
-def _blocks(group: LieGroup, rules: Sequence[str]) -> list[_Block]:
-    factors = group.factors if isinstance(group, Product) else (group,)
+def _blocks(group: LieGroup, rules: tuple[str, ...]) -> list[_Block]:
     blocks: list[_Block] = []
     el = tan = 0
-    for f, rule in zip(factors, rules):
+    for f, rule in zip(group.factors, rules):
         numel, tdim = math.prod(f.element_shape), f.tangent_dim
         vector = isinstance(f, Euclidean)
         prev = blocks[-1] if blocks else None
@@ -264,117 +110,6 @@ def _blocks(group: LieGroup, rules: Sequence[str]) -> list[_Block]:
     return blocks
 
 
-def _factor(group: LieGroup, name: str) -> LieGroup:
-    if isinstance(group, Product):
-        return group.factors[factor_names(group).index(name)]
-    return group
-
-
-def _element_slice(group: LieGroup, name: str) -> slice:
-    if isinstance(group, Product):
-        return group.element_slice(factor_names(group).index(name))
-    return slice(0, math.prod(group.element_shape))
-
-
-def _embed_is_flatten(group: LieGroup) -> bool:
-    """Whether ``embed`` of every factor is its flattened element (SO(3), R^n; not SE(3)).
-
-    Checked once, exactly, on two random elements in float64; the rollout then feeds the flat
-    state to the core without slicing and concatenating the factors' embeddings every step.
-    """
-    factors = group.factors if isinstance(group, Product) else (group,)
-    gen = torch.Generator().manual_seed(0)
-    for f in factors:
-        if isinstance(f, Euclidean):
-            continue
-        if f.embedding_dim != math.prod(f.element_shape):
-            return False
-        x = f.random((2,), generator=gen, dtype=torch.float64)
-        if not torch.equal(f.embed(x), x.flatten(1)):
-            return False
-    return True
-
-
-def _parse_innovation(group, measurement_dim, innovation) -> dict[str, tuple[int, int]]:
-    """``{factor name: (start, stop)}`` checked against the group and the measurement size."""
-    if not innovation:
-        return {}
-    names = factor_names(group)
-    out = {}
-    for name, span in dict(innovation).items():
-        if name not in names:
-            raise ValueError(
-                f"innovation names a factor {name!r} that {group!r} does not have; its factors "
-                f"are {list(names)}."
-            )
-        f = _factor(group, name)
-        try:
-            a, b = (int(i) for i in span)
-        except (TypeError, ValueError):
-            raise ValueError(
-                f"innovation[{name!r}] must be (start, stop) in y, got {span!r}."
-            ) from None
-        if not (0 <= a < b <= measurement_dim and b - a == f.embedding_dim):
-            raise ValueError(
-                f"innovation[{name!r}] = ({a}, {b}) must be a span of y (size {measurement_dim}) "
-                f"of the factor's embedding_dim = {f.embedding_dim} entries."
-            )
-        out[name] = (a, b)
-    return out
-
-
-def _parse_relative(group, innovation, relative_only) -> tuple[str, ...]:
-    """The relative-only factor names, each checked to have an innovation span."""
-    names = tuple(relative_only or ())
-    for name in names:
-        if name not in factor_names(group):
-            raise ValueError(
-                f"relative_only names a factor {name!r} that {group!r} does not have; its "
-                f"factors are {list(factor_names(group))}."
-            )
-        if name not in innovation:
-            raise ValueError(
-                f"relative_only factor {name!r} has no innovation span: the core would not see "
-                "it at all. Add it to innovation ({name: [start, stop]} in y) or drop it."
-            )
-    return names
-
-
-def _kept_columns(group, context_dim, innovation, relative) -> tuple:
-    """Index tensors of the embedding and (y, u) columns the core reads (``None``: all)."""
-    if not relative:
-        return None, None
-    emb = torch.ones(group.embedding_dim, dtype=torch.bool)
-    ctx = torch.ones(context_dim, dtype=torch.bool)
-    for name in relative:
-        if isinstance(group, Product):
-            emb[group.embedding_slice(factor_names(group).index(name))] = False
-        else:
-            emb[:] = False
-        a, b = innovation[name]
-        ctx[a:b] = False
-    return emb.nonzero().flatten(), ctx.nonzero().flatten()
-
-
-def core_input_size(
-    group: LieGroup,
-    measurement_dim: int,
-    input_dim: int = 0,
-    innovation: Mapping[str, Sequence[int]] | None = None,
-    relative_only: Sequence[str] = (),
-) -> int:
-    """The size of what the core reads per step: ``embed(xhat)``, ``y`` and ``u`` (less the
-    relative-only columns) and the innovation's tangent vectors. Checks the arguments."""
-    innov = _parse_innovation(group, measurement_dim, innovation)
-    relative = _parse_relative(group, innov, relative_only)
-    emb, ctx = _kept_columns(group, measurement_dim + input_dim, innov, relative)
-    return (
-        (group.embedding_dim if emb is None else len(emb))
-        + (measurement_dim + input_dim if ctx is None else len(ctx))
-        + sum(_factor(group, name).tangent_dim for name in innov)
-    )
-
-
 # ---------------------------------------------------------------------- the observer
 
 
@@ -392,18 +127,15 @@ class ResidualObserver(nn.Module):
         group: the state's group (any :class:`groups.LieGroup`).
         measurement_dim: size ``l`` of a measurement ``y``.
         input_dim: size ``m`` of an input ``u`` (0: no input).
-        core: a :class:`RecurrentCore` with ``input_size = embedding_dim + l + m`` (plus the
-            innovation's tangent dimensions) and
-            ``output_size = tangent_dim``; default a :class:`GRUCore` of ``hidden_size`` x
-            ``num_layers``.
-        update: ``"residual"`` / ``"absolute"`` for every factor, or a mapping ``{factor name or
-            index: rule}`` (unnamed factors default to residual), or one rule per factor.
-        innovation: ``{factor name: (start, stop)}``: ``y[..., start:stop]`` is the embedding
-            of that factor, measured; the core also reads ``rminus(m_f, xhat_f)`` per factor
-            (see the module docstring). ``None`` (default): the paper's inputs.
-        relative_only: factor names (each with an ``innovation`` span) whose absolute estimate
-            and measurement the core does not read (see the module docstring).
+        core: a :class:`~manifold_nets.cores.RecurrentCore` mapping
+            ``inputs.core_input_size(group, l, m)`` (``embedding_dim + l + m`` for the paper's
+            inputs) to ``tangent_dim``; default a :class:`~manifold_nets.cores.GRUCore` of
+            ``hidden_size`` x ``num_layers`` (512 x 2, the paper's).
+        update: ``{factor name: "residual" | "absolute"}``; factors not named are residual.
+        inputs: what the core reads besides the paper's inputs
+            (:class:`~manifold_nets.inputs.ObserverInputs`; default none).
         state_dtype: dtype of the group state (float64 default); the network keeps its own.
+        hidden_size, num_layers: sizes of the default GRU core (only without ``core``).
     """
 
     def __init__(
@@ -413,12 +145,11 @@ class ResidualObserver(nn.Module):
         input_dim: int = 0,
         core: RecurrentCore | None = None,
         *,
-        hidden_size: int = 512,
-        num_layers: int = 2,
-        update: str | Mapping | Sequence | None = None,
-        innovation: Mapping[str, Sequence[int]] | None = None,
-        relative_only: Sequence[str] = (),
+        update: Mapping[str, str] | None = None,
+        inputs: ObserverInputs | None = None,
         state_dtype: torch.dtype = torch.float64,
+        hidden_size: int | None = None,
+        num_layers: int | None = None,
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -435,57 +166,62 @@ class ResidualObserver(nn.Module):
             raise TypeError(
                 f"state_dtype must be torch.float32 or torch.float64, got {state_dtype}."
             )
+        inputs = ObserverInputs() if inputs is None else inputs
+        if not isinstance(inputs, ObserverInputs):
+            raise TypeError(f"inputs must be an ObserverInputs, got {type(inputs).__name__}.")
         self.group = group
         self.measurement_dim = measurement_dim
         self.input_dim = input_dim
         self.state_dtype = state_dtype
+        self.inputs = inputs.check(group, measurement_dim)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
-        self._embed_is_flat = _embed_is_flatten(group)
         self._numel = math.prod(group.element_shape)
-        self.innovation = _parse_innovation(group, measurement_dim, innovation)
         self._innov = [
-            (_factor(group, name), _element_slice(group, name), slice(a, b))
-            for name, (a, b) in self.innovation.items()
+            (group.factor(name), group.element_slice(name), slice(a, b))
+            for name, (a, b) in inputs.innovation.items()
         ]
-        innov_dim = sum(f.tangent_dim for f, _, _ in self._innov)
-        self.relative_only = _parse_relative(group, self.innovation, relative_only)
-        keep_embedding, keep_context = _kept_columns(
-            group, measurement_dim + input_dim, self.innovation, self.relative_only
-        )
+        keep_embedding, keep_context = inputs.kept_columns(group, measurement_dim + input_dim)
         # column indices of embed(x) and of (y, u) that the core reads; None: all of them
         self.register_buffer("_keep_embedding", keep_embedding, persistent=False)
         self.register_buffer("_keep_context", keep_context, persistent=False)
-        in_size = core_input_size(
-            group, measurement_dim, input_dim, self.innovation, self.relative_only
-        )
+        self.core = self._check_core(core, hidden_size, num_layers)
+        self._compiled_step = None
+
+    def _check_core(self, core, hidden_size, num_layers) -> RecurrentCore:
+        """``core``, or the default GRU core, checked against the sizes the observer needs."""
+        in_size = self.inputs.core_input_size(self.group, self.measurement_dim, self.input_dim)
+        out_size = self.group.tangent_dim
         if core is None:
-            core = GRUCore(in_size, group.tangent_dim, hidden_size, num_layers)
+            return GRUCore(in_size, out_size, hidden_size or 512, num_layers or 2)
         if not isinstance(core, RecurrentCore):
             raise TypeError(f"core must be a RecurrentCore, got {type(core).__name__}.")
-        if core.input_size != in_size or core.output_size != group.tangent_dim:
+        if hidden_size is not None or num_layers is not None:
+            raise ValueError(
+                "hidden_size and num_layers size the default GRU core; with a core of your own, "
+                "size the core itself."
+            )
+        if core.input_size != in_size or core.output_size != out_size:
+            relative = self.inputs.relative_only
             raise ValueError(
                 f"core maps {core.input_size} -> {core.output_size}, but the observer needs "
                 f"{in_size} (embedding_dim + measurement_dim + input_dim + innovation's tangent "
-                f"dims = {group.embedding_dim} + {measurement_dim} + {input_dim} + {innov_dim}"
-                + (f", less relative_only {list(self.relative_only)}" if self.relative_only else "")
-                + f") -> tangent_dim = {group.tangent_dim}."
+                f"dims = {self.group.embedding_dim} + {self.measurement_dim} + {self.input_dim} "
+                f"+ {self.inputs.innovation_dim(self.group)}"
+                + (f", less relative_only {list(relative)}" if relative else "")
+                + f") -> tangent_dim = {out_size}."
             )
-        self.core = core
-        self._compiled_step = None
+        return core
 
     def compile_step(self, **options) -> ResidualObserver:
         """Compiles the per-step function with ``torch.compile`` for the rollouts that record
         gradients (training); rollouts without gradients (evaluation, online use) stay eager.
 
         The step is a few dozen small kernels (the core's cells, the group update, the
-        innovation's log); compiled, they fuse, and the backward pass with them. Measured on 2
-        CPU cores, 1 thread, 2x128 on the rigid body: 1.22x faster at batch 256 (1.42x with
-        innovation inputs), 1.36x at batch 64 (1.77x with innovation inputs), after about 45 s
-        of compilation (once per batch shape); the losses equal the eager ones to six digits
-        (``benchmarks/results/observer.md``). Needs a C++
-        compiler on the CPU. ``options`` go to ``torch.compile`` (default ``dynamic=False``).
-        Returns ``self``.
+        innovation's log); compiled, they fuse, and the backward pass with them
+        (``benchmarks/results/observer.md`` has the speed-ups). Compilation takes tens of
+        seconds, once per batch shape, and needs a C++ compiler on the CPU. ``options`` go to
+        ``torch.compile`` (default ``dynamic=False``). Returns ``self``.
         """
         self._compiled_step = torch.compile(self._step, **{"dynamic": False, **options})
         return self
@@ -502,17 +238,14 @@ class ResidualObserver(nn.Module):
 
     def signature(self) -> dict:
         """What a checkpoint must match to load into this observer (JSON-able)."""
-        sig = {
+        return {
             "group": repr(self.group),
             "measurement_dim": self.measurement_dim,
             "input_dim": self.input_dim,
             "update": list(self.rules),
-            "innovation": {k: list(v) for k, v in self.innovation.items()},
+            **self.inputs.signature(),
             "core": self.core.signature(),
         }
-        if self.relative_only:  # only when used: older checkpoints keep matching
-            sig["relative_only"] = list(self.relative_only)
-        return sig
 
     def extra_repr(self) -> str:
         return (
@@ -525,7 +258,7 @@ class ResidualObserver(nn.Module):
 
     def _embed(self, x: torch.Tensor) -> torch.Tensor:
         """``embed`` of a flat state ``(B, numel)`` -> ``(B, embedding_dim)``."""
-        if self._embed_is_flat:  # e.g. SO(3) x R^n: the flat element is its embedding
+        if self.group.embedding_is_flat:  # e.g. SO(3) x R^n: the flat element is its embedding
             return x
         parts = []
         for b in self._blocks:

@@ -16,51 +16,37 @@ numbers would not fit the state's layout.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Sequence
-
-import torch
 
 from groups import Euclidean, LieGroup, Product
 
-from .observer import factor_names
-
 __all__ = ["relax"]
-
-
-def _factors(group: LieGroup) -> tuple[list[LieGroup], list[str]]:
-    if isinstance(group, Product):
-        return list(group.factors), list(factor_names(group))
-    return [group], ["x"]
 
 
 def relax(group: LieGroup, names: Sequence[str]) -> LieGroup:
     """``group`` with the factors ``names`` replaced by ``Euclidean(embedding_dim)``.
 
-    A non-product group is one factor named ``x``; unnamed product factors are ``factor0``, ... Returns ``group`` itself when ``names`` is
+    The names are ``group.factor_names`` (a non-product group is one factor named ``x``;
+    unnamed product factors are ``factor0``, ...). Returns ``group`` itself when ``names`` is
     empty. Raises ``ValueError`` for an unknown factor or one whose embedding is not its
     flattened element.
     """
     names = list(names)
     if not names:
         return group
-    factors, have = _factors(group)
+    factors, have = group.factors, list(group.factor_names)
     unknown = [n for n in names if n not in have]
     if unknown:
         raise ValueError(
             f"model.relax names factors {unknown} that the group {group!r} does not have; its "
             f"factors: {have}."
         )
-    gen = torch.Generator().manual_seed(0)
     out = []
     for f, name in zip(factors, have):
         if name not in names or isinstance(f, Euclidean):
             out.append(f)
             continue
-        x = f.random((2,), generator=gen, dtype=torch.float64)
-        if f.embedding_dim != math.prod(f.element_shape) or not torch.equal(
-            f.embed(x), x.flatten(1)
-        ):
+        if not f.embedding_is_flat:
             raise ValueError(
                 f"cannot relax factor {name!r} ({f!r}): its embedding ({f.embedding_dim} numbers) "
                 f"is not its flattened element {tuple(f.element_shape)}, so an unconstrained "

@@ -19,6 +19,11 @@ Files written in ``out_dir``:
   model, so a best checkpoint exists from the start);
 * ``log.csv`` and ``log.json``: one row per epoch (train loss, validation loss, best, time).
 
+Settings come as one :class:`~manifold_nets.config.TrainSettings` (the ``train`` group of the
+config schema). Data augmentation is a batch transform handed to :func:`fit`
+(:class:`~manifold_nets.augmentation.MeasurementNoise` adds measurement noise of a random
+sigma per sequence through the system's noise model); validation data stay as given.
+
 A NaN or Inf loss stops training with :class:`TrainingDiverged`, naming the epoch and batch,
 and leaves ``best.pt`` and ``last.pt`` (the last good epoch) in place.
 
@@ -35,28 +40,34 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
 
 import torch
 from tqdm.auto import tqdm
 
 from .atomic import write_text_atomic
-from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
+from .checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint, save_checkpoint
+from .config import TrainSettings
 from .data import TrajectoryDataset
 from .losses import embedding_mse
 from .observer import ResidualObserver
 
 __all__ = [
+    "BatchTransform",
     "FitResult",
     "TrainingDiverged",
     "check_schedule",
+    "check_settings",
     "fit",
     "learning_rate",
-    "resolve_checkpoint",
     "validation_loss",
 ]
+
+#: A batch transform: ``(measurements (B, T, l), generator) -> measurements``, applied to every
+#: training batch before the rollout (e.g. :class:`~manifold_nets.augmentation.MeasurementNoise`).
+BatchTransform = Callable[[torch.Tensor, torch.Generator], torch.Tensor]
 
 log = logging.getLogger(__name__)
 
@@ -69,15 +80,30 @@ def check_schedule(schedule: str, lr: float, lr_min: float = 0.0) -> None:
     """Raises ``ValueError`` naming the setting unless the learning-rate settings are usable."""
     if schedule not in SCHEDULES:
         raise ValueError(
-            f"train.schedule={schedule!r} is not a schedule; choose one of {', '.join(SCHEDULES)}."
+            f"schedule={schedule!r} is not a schedule; choose one of {', '.join(SCHEDULES)}."
         )
     if not (math.isfinite(lr) and lr > 0):
-        raise ValueError(f"train.lr must be a positive number, got {lr!r}.")
+        raise ValueError(f"lr must be a positive number, got {lr!r}.")
     if not (math.isfinite(lr_min) and 0.0 <= lr_min <= lr):
         raise ValueError(
-            f"train.lr_min must satisfy 0 <= lr_min <= train.lr = {lr}, got {lr_min!r}; it is "
-            "where the cosine schedule's learning rate ends."
+            f"lr_min must satisfy 0 <= lr_min <= lr = {lr}, got {lr_min!r}; it is where the "
+            "cosine schedule's learning rate ends."
         )
+
+
+def check_settings(settings: TrainSettings) -> TrainSettings:
+    """Raises ``ValueError`` naming the setting unless ``settings`` can train; returns them."""
+    if not isinstance(settings, TrainSettings):
+        raise TypeError(
+            f"settings must be a manifold_nets.TrainSettings, got {type(settings).__name__}."
+        )
+    for name in ("epochs", "batch_size", "eval_batch_size"):
+        val = getattr(settings, name)
+        low = 0 if name == "epochs" else 1
+        if isinstance(val, bool) or not isinstance(val, int) or val < low:
+            raise ValueError(f"{name} must be an integer >= {low}, got {val!r}.")
+    check_schedule(settings.schedule, float(settings.lr), float(settings.lr_min))
+    return settings
 
 
 def learning_rate(
@@ -109,17 +135,6 @@ class FitResult:
     history: list[dict] = field(default_factory=list)
     best_path: Path | None = None
     last_path: Path | None = None
-
-
-def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:
-    """A checkpoint file from a file path or a run folder (``<dir>/checkpoints/<name>``)."""
-    p = Path(path)
-    if p.is_dir():
-        for cand in (p / "checkpoints" / name, p / name):
-            if cand.is_file():
-                return cand
-        raise CheckpointError(f"no {name} in the run folder {p} (looked in {p}/checkpoints/).")
-    return p
 
 
 def _write_logs(out_dir: Path, history: list[dict]) -> None:
@@ -183,229 +198,195 @@ def _prepare(
     )
 
 
-def _noisy(system, y: torch.Tensor, sigma_min: float, sigma_max: float, gen: torch.Generator):
-    """Noise of a per-sequence sigma ~ U[sigma_min, sigma_max] applied to clean measurements."""
-    n, t = y.shape[:2]
-    sigma = torch.empty(n, dtype=torch.float64).uniform_(sigma_min, sigma_max, generator=gen)
-    noise = torch.randn(n, t, system.noise_dim, generator=gen, dtype=torch.float64)
-    noise.mul_(sigma[:, None, None])
-    return system.apply_noise(y.to(torch.float64).cpu(), noise).to(y)
-
-
 def fit(
     model: ResidualObserver,
     train_data: TrajectoryDataset,
     val_data: TrajectoryDataset,
+    settings: TrainSettings,
     *,
     out_dir: str | os.PathLike,
-    epochs: int,
-    batch_size: int = 256,
-    lr: float = 3e-4,
-    weight_decay: float = 0.1,
-    schedule: str = "constant",
-    lr_min: float = 0.0,
-    grad_clip: float | None = None,
-    max_batches: int | None = None,
-    eval_batch_size: int = 500,
     seed: int = 0,
-    noise_sigma: tuple[float, float] = (0.0, 0.0),
-    system: Any = None,
+    transform: BatchTransform | None = None,
     config: dict | None = None,
-    resume: str | os.PathLike | None = None,
-    progress: bool = True,
 ) -> FitResult:
     """Trains ``model`` in place (it ends with the *last* epoch's weights; load ``best.pt`` for
     the best) and returns a :class:`FitResult`. See the module docstring for the files.
 
-    ``noise_sigma = (lo, hi)`` with ``hi > 0`` adds measurement noise of a per-sequence
-    ``sigma ~ U[lo, hi]`` to every training batch through ``system.apply_noise(measurements,
-    noise)`` (noise ``(N, T, system.noise_dim)``, already scaled); validation stays as given.
-    ``schedule`` (``constant`` or ``cosine``, down to ``lr_min``) sets each epoch's learning
-    rate through :func:`learning_rate`. ``config`` (plain data) is stored in the checkpoints.
-    ``resume`` is a ``last.pt`` (or a run folder holding one) of the same model; training
-    continues after its epoch.
+    ``settings`` (:class:`~manifold_nets.config.TrainSettings`): ``epochs``, ``batch_size``,
+    ``lr``, ``weight_decay``, ``schedule`` and ``lr_min`` (each epoch's rate from
+    :func:`learning_rate`), ``grad_clip``, ``max_batches``, ``eval_batch_size``, ``progress``,
+    and ``resume``: a ``last.pt`` (or a run folder holding one) of the same model, training then
+    continues after its epoch. ``transform`` is applied to every training batch's measurements
+    with the run's generator (seeded by ``seed``, like the batch order). ``config`` (plain data)
+    is stored in the checkpoints.
     """
-    for name, val in (
-        ("epochs", epochs),
-        ("batch_size", batch_size),
-        ("eval_batch_size", eval_batch_size),
-    ):
-        if (
-            isinstance(val, bool)
-            or not isinstance(val, int)
-            or val < (0 if name == "epochs" else 1)
-        ):
-            raise ValueError(f"{name} must be a positive integer, got {val!r}.")
-    check_schedule(schedule, lr, lr_min)
-    lo, hi = (float(s) for s in noise_sigma)
-    if not 0.0 <= lo <= hi:
-        raise ValueError(f"noise sigma range must satisfy 0 <= min <= max, got ({lo}, {hi}).")
-    if hi > 0 and not callable(getattr(system, "apply_noise", None)):
-        raise ValueError(
-            "noise-augmented training needs a system with apply_noise(measurements, noise) and "
-            f"noise_dim; got {type(system).__name__}. Use train.noise.sigma_max=0 (the paper's "
-            "noise-free protocol) or give the system that method."
-        )
-    out_dir = Path(out_dir)
-    ckpt_dir = out_dir / "checkpoints"
-    ckpt_dir.mkdir(parents=True, exist_ok=True)
-    best_path, last_path = ckpt_dir / "best.pt", ckpt_dir / "last.pt"
-    device = model.device
-    train = _prepare(train_data, model, device, "training")
-    val = _prepare(val_data, model, device, "validation")
-    config = {} if config is None else config
-    signature = model.signature()
+    check_settings(settings)
+    trainer = _Trainer(model, settings, Path(out_dir), seed, config or {})
+    train = _prepare(train_data, model, trainer.device, "training")
+    val = _prepare(val_data, model, trainer.device, "validation")
+    start = 1 if settings.resume is None else trainer.resume(settings.resume)
+    if start == 1:
+        trainer.start(val)
+    model.train()
+    for epoch in range(start, settings.epochs + 1):
+        trainer.epoch(epoch, train, val, transform)
+    return trainer.result()
 
-    gen = torch.Generator().manual_seed(int(seed))
-    opt = torch.optim.AdamW(model.parameters(), lr=lr, weight_decay=weight_decay)
-    history: list[dict] = []
-    best = {"epoch": 0, "val_loss": math.inf}
-    start = 1
-    if resume is not None:
-        path = resolve_checkpoint(resume)
-        ckpt = load_checkpoint(path, expected_signature=signature, map_location=device)
-        if "optimizer" not in ckpt or "rng" not in ckpt:
-            raise CheckpointError(f"{path} holds no optimizer/RNG state: resume from a last.pt.")
-        model.load_state_dict(ckpt["model"])
-        opt.load_state_dict(ckpt["optimizer"])
-        gen.set_state(ckpt["rng"]["generator"])
-        torch.set_rng_state(ckpt["rng"]["torch"])
-        history = list(ckpt.get("history", []))
-        best = dict(ckpt["best"])
-        start = int(ckpt["epoch"]) + 1
-        if Path(path).resolve() != last_path.resolve():  # resuming into a new folder
-            src_best = Path(path).parent / "best.pt"
-            if src_best.is_file():
-                b = load_checkpoint(src_best, expected_signature=signature)
-                save_checkpoint(best_path, b)
-        log.info(
-            "resumed from %s after epoch %d (best val %.4g at epoch %d)",
-            path,
-            start - 1,
-            best["val_loss"],
-            best["epoch"],
-        )
 
-    def payload(epoch: int, full: bool) -> dict:
+class _Trainer:
+    """The state of one :func:`fit`: optimizer, generator, history, best, checkpoint files."""
+
+    def __init__(self, model, settings: TrainSettings, out_dir: Path, seed: int, config: dict):
+        self.model, self.settings, self.out_dir, self.config = model, settings, out_dir, config
+        ckpt_dir = out_dir / "checkpoints"
+        ckpt_dir.mkdir(parents=True, exist_ok=True)
+        self.best_path, self.last_path = ckpt_dir / "best.pt", ckpt_dir / "last.pt"
+        self.device = model.device
+        self.signature = model.signature()
+        self.gen = torch.Generator().manual_seed(int(seed))
+        self.opt = torch.optim.AdamW(
+            model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
+        )
+        self.history: list[dict] = []
+        self.best = {"epoch": 0, "val_loss": math.inf}
+
+    def payload(self, epoch: int, full: bool) -> dict:
+        """What a checkpoint holds: ``best.pt`` the weights, ``last.pt`` all to resume."""
         p = {
-            "model": model.state_dict(),
-            "signature": signature,
-            "config": config,
+            "model": self.model.state_dict(),
+            "signature": self.signature,
+            "config": self.config,
             "epoch": epoch,
-            "best": dict(best),
+            "best": dict(self.best),
         }
         if full:
             p.update(
-                optimizer=opt.state_dict(),
-                history=history,
-                rng={"generator": gen.get_state(), "torch": torch.get_rng_state()},
+                optimizer=self.opt.state_dict(),
+                history=self.history,
+                rng={"generator": self.gen.get_state(), "torch": torch.get_rng_state()},
             )
         return p
 
-    def diverged(what: str, value: float, epoch: int, batch: int | None = None) -> TrainingDiverged:
+    def resume(self, where: str | os.PathLike) -> int:
+        """Restores everything from ``where``'s ``last.pt``; returns the next epoch."""
+        path = resolve_checkpoint(where)
+        ckpt = load_checkpoint(path, expected_signature=self.signature, map_location=self.device)
+        if "optimizer" not in ckpt or "rng" not in ckpt:
+            raise CheckpointError(f"{path} holds no optimizer/RNG state: resume from a last.pt.")
+        self.model.load_state_dict(ckpt["model"])
+        self.opt.load_state_dict(ckpt["optimizer"])
+        self.gen.set_state(ckpt["rng"]["generator"])
+        torch.set_rng_state(ckpt["rng"]["torch"])
+        self.history = list(ckpt.get("history", []))
+        self.best = dict(ckpt["best"])
+        if Path(path).resolve() != self.last_path.resolve():  # resuming into a new folder
+            src_best = Path(path).parent / "best.pt"
+            if src_best.is_file():
+                b = load_checkpoint(src_best, expected_signature=self.signature)
+                save_checkpoint(self.best_path, b)
+        log.info(
+            "resumed from %s after epoch %d (best val %.4g at epoch %d)",
+            path, ckpt["epoch"], self.best["val_loss"], self.best["epoch"],
+        )
+        return int(ckpt["epoch"]) + 1
+
+    def diverged(self, what: str, value: float, epoch: int, batch: int | None = None):
         where = f"epoch {epoch}" + (f", batch {batch}" if batch is not None else "")
         kept = (
-            f"the best checkpoint (epoch {best['epoch']}, val loss {best['val_loss']:.4g}) is "
-            f"kept at {best_path}"
-            if best_path.is_file()
+            f"the best checkpoint (epoch {self.best['epoch']}, val loss "
+            f"{self.best['val_loss']:.4g}) is kept at {self.best_path}"
+            if self.best_path.is_file()
             else "no checkpoint was written yet"
         )
         return TrainingDiverged(
             f"the {what} became {value} at {where}; training stopped. {kept}. Try a smaller "
-            "train.lr, gradient clipping (train.grad_clip=1.0) or a float64 network "
-            "(model.net_dtype=float64)."
+            "learning rate (lr), gradient clipping (grad_clip=1.0) or a float64 network "
+            "(net_dtype float64)."
         )
 
-    if start == 1:
-        v0 = validation_loss(model, val, eval_batch_size)
+    def start(self, val: TrajectoryDataset) -> None:
+        """Epoch 0: the starting model's validation loss, its ``best.pt`` and log row."""
+        v0 = validation_loss(self.model, val, self.settings.eval_batch_size)
         if not math.isfinite(v0):
-            raise diverged("validation loss of the starting model", v0, 0)
-        best = {"epoch": 0, "val_loss": v0}
-        history.append(
-            {
-                "epoch": 0,
-                "train_loss": None,
-                "val_loss": v0,
-                "best_val_loss": v0,
-                "best_epoch": 0,
-                "lr": lr,
-                "seconds": 0.0,
-            }
+            raise self.diverged("validation loss of the starting model", v0, 0)
+        self.best = {"epoch": 0, "val_loss": v0}
+        self.history.append(
+            {"epoch": 0, "train_loss": None, "val_loss": v0, "best_val_loss": v0,
+             "best_epoch": 0, "lr": self.settings.lr, "seconds": 0.0}
         )
-        save_checkpoint(best_path, payload(0, full=False))
-        _write_logs(out_dir, history)
+        save_checkpoint(self.best_path, self.payload(0, full=False))
+        _write_logs(self.out_dir, self.history)
         log.info("epoch 0 (before any step): val loss %.5g", v0)
 
-    n = len(train)
-    model.train()
-    for epoch in range(start, epochs + 1):
-        t0 = time.perf_counter()
-        rate = learning_rate(epoch, epochs=epochs, lr=lr, schedule=schedule, lr_min=lr_min)
-        for group in opt.param_groups:
-            group["lr"] = rate
-        perm = torch.randperm(n, generator=gen)
-        batches = list(perm.split(batch_size))
-        if max_batches is not None:
-            batches = batches[:max_batches]
-        running, count = 0.0, 0
-        bar = tqdm(
-            batches,
-            desc=f"epoch {epoch}/{epochs}",
-            leave=False,
-            dynamic_ncols=True,
-            disable=None if progress else True,
+    def epoch(self, epoch: int, train, val, transform: BatchTransform | None) -> None:
+        """One pass over the training split, then validation, checkpoints and the log row."""
+        s, t0 = self.settings, time.perf_counter()
+        rate = learning_rate(
+            epoch, epochs=s.epochs, lr=s.lr, schedule=s.schedule, lr_min=s.lr_min
         )
-        for b, idx in enumerate(bar, 1):
-            y, u, x = _batches(train, idx.to(train.measurements.device))
-            if hi > 0:
-                y = _noisy(system, y, lo, hi, gen)
-            loss = embedding_mse(model.group, model(y, u), x)
-            value = loss.item()
-            if not math.isfinite(value):
-                bar.close()
-                raise diverged("training loss", value, epoch, b)
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if grad_clip is not None:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), grad_clip)
-            opt.step()
-            running += value * len(idx)
-            count += len(idx)
-            bar.set_postfix(loss=f"{running / count:.4g}")
-        bar.close()
-        train_loss = running / max(count, 1)
-        val_loss = validation_loss(model, val, eval_batch_size)
+        for group in self.opt.param_groups:
+            group["lr"] = rate
+        batches = list(torch.randperm(len(train), generator=self.gen).split(s.batch_size))
+        if s.max_batches is not None:
+            batches = batches[: s.max_batches]
+        train_loss = self.train_batches(epoch, train, batches, transform)
+        val_loss = validation_loss(self.model, val, s.eval_batch_size)
         if not math.isfinite(val_loss):
-            raise diverged("validation loss", val_loss, epoch)
-        if val_loss < best["val_loss"]:
-            best = {"epoch": epoch, "val_loss": val_loss}
-            save_checkpoint(best_path, payload(epoch, full=False))
+            raise self.diverged("validation loss", val_loss, epoch)
+        if val_loss < self.best["val_loss"]:
+            self.best = {"epoch": epoch, "val_loss": val_loss}
+            save_checkpoint(self.best_path, self.payload(epoch, full=False))
         row = {
             "epoch": epoch,
             "train_loss": train_loss,
             "val_loss": val_loss,
-            "best_val_loss": best["val_loss"],
-            "best_epoch": best["epoch"],
-            "lr": opt.param_groups[0]["lr"],
+            "best_val_loss": self.best["val_loss"],
+            "best_epoch": self.best["epoch"],
+            "lr": self.opt.param_groups[0]["lr"],
             "seconds": time.perf_counter() - t0,
         }
-        history.append(row)
-        save_checkpoint(last_path, payload(epoch, full=True))
-        _write_logs(out_dir, history)
+        self.history.append(row)
+        save_checkpoint(self.last_path, self.payload(epoch, full=True))
+        _write_logs(self.out_dir, self.history)
         log.info(
             "epoch %d/%d: train loss %.5g, val loss %.5g (best %.5g at epoch %d), %.1f s",
-            epoch,
-            epochs,
-            train_loss,
-            val_loss,
-            best["val_loss"],
-            best["epoch"],
+            epoch, s.epochs, train_loss, val_loss, self.best["val_loss"], self.best["epoch"],
             row["seconds"],
         )
-    return FitResult(
-        best["epoch"],
-        best["val_loss"],
-        history,
-        best_path,
-        last_path if last_path.is_file() else None,
-    )
+
+    def train_batches(self, epoch, train, batches, transform) -> float:
+        """BPTT and an optimizer step per batch; returns the epoch's mean training loss."""
+        model, s = self.model, self.settings
+        running, count = 0.0, 0
+        bar = tqdm(
+            batches,
+            desc=f"epoch {epoch}/{s.epochs}",
+            leave=False,
+            dynamic_ncols=True,
+            disable=None if s.progress else True,
+        )
+        for b, idx in enumerate(bar, 1):
+            y, u, x = _batches(train, idx.to(train.measurements.device))
+            if transform is not None:
+                y = transform(y, self.gen)
+            loss = embedding_mse(model.group, model(y, u), x)
+            value = loss.item()
+            if not math.isfinite(value):
+                bar.close()
+                raise self.diverged("training loss", value, epoch, b)
+            self.opt.zero_grad(set_to_none=True)
+            loss.backward()
+            if s.grad_clip is not None:
+                torch.nn.utils.clip_grad_norm_(model.parameters(), s.grad_clip)
+            self.opt.step()
+            running += value * len(idx)
+            count += len(idx)
+            bar.set_postfix(loss=f"{running / count:.4g}")
+        bar.close()
+        return running / max(count, 1)
+
+    def result(self) -> FitResult:
+        last = self.last_path if self.last_path.is_file() else None
+        return FitResult(
+            self.best["epoch"], self.best["val_loss"], self.history, self.best_path, last
+        )

@@ -19,7 +19,7 @@ from examples.attitude.motion import random_sinusoids
 from examples.attitude.triad import triad
 from groups import SO3
 from manifold_nets.data import load_dataset
-from manifold_nets.generate import DatasetConfig, load_or_generate, make_dataset
+from manifold_nets import DatasetConfig, load_or_generate, make_dataset
 
 F64 = torch.float64
 CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
@@ -272,7 +272,7 @@ def test_ekf_is_consistent_stays_on_the_group_and_beats_triad():
 def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
     from examples.attitude.compare import attitude_estimators, compare_run, load_run
     from manifold_nets.evaluation import rollout
-    from manifold_nets.train import run
+    from manifold_nets.cli.train import run
 
     tiny = [
         "experiment=attitude", f"dataset.cache_dir={tmp_path / 'data'}", "dataset.num_sequences=40",

@@ -14,11 +14,11 @@ from hydra import compose, initialize_config_dir
 from hydra.errors import ConfigCompositionException
 from omegaconf import OmegaConf
 
-import manifold_nets.train_config  # noqa: F401  (registers the schema)
-from manifold_nets import sweep
+import manifold_nets.config  # noqa: F401  (registers the schema)
+from manifold_nets.cli import sweep
 from manifold_nets.checkpoint import CheckpointError
-from manifold_nets.train import run
-from manifold_nets.train_config import RunConfig
+from manifold_nets.cli.train import run
+from manifold_nets.config import RunConfig
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = ROOT / "configs"
@@ -230,14 +230,19 @@ def test_init_from_fine_tunes_a_trained_model_on_other_data(tmp_path):
 def test_noise_levels_mix_measurements_per_sequence(tmp_path):
     from hydra.utils import instantiate
 
-    from manifold_nets.train import load_training_data
+    from manifold_nets.datasets import training_data
 
-    cache = tmp_path / "data"
-    cfg = _compose(*_tiny(cache, "train.noise.levels=[0.0,0.3]"))
-    system = instantiate(cfg.system)
-    mixed = load_training_data(system, cfg)
-    clean = load_training_data(system, _compose(*_tiny(cache, "dataset.sigma=0.0")))
-    noisy = load_training_data(system, _compose(*_tiny(cache, "dataset.sigma=0.3")))
+    def data(*overrides):
+        cfg = _compose(*_tiny(tmp_path / "data", *overrides))
+        return training_data(
+            instantiate(cfg.system),
+            OmegaConf.to_object(cfg.dataset),
+            noise_levels=list(cfg.train.noise.levels),
+        )
+
+    mixed = data("train.noise.levels=[0.0,0.3]")
+    clean = data("dataset.sigma=0.0")
+    noisy = data("dataset.sigma=0.3")
     for name in ("train", "val", "test"):
         m, c, n = mixed[name], clean[name], noisy[name]
         assert torch.equal(m.states, c.states)

@@ -22,7 +22,7 @@ from manifold_nets.data import (
     save_dataset,
     split_ranges,
 )
-from manifold_nets.generate import make_dataset
+from manifold_nets.datasets import make_dataset
 from manifold_nets.progress import progress
 
 F64 = torch.float64

@@ -18,10 +18,11 @@ from omegaconf import OmegaConf
 
 from examples.rigid_body import RigidBody
 from groups import SO3
-from manifold_nets import generate as gen_mod
+from manifold_nets import datasets as gen_mod
 from manifold_nets.system import System
 from manifold_nets.data import DatasetError, load_dataset
-from manifold_nets.generate import DatasetConfig, InferenceConfig, dataset_path, load_or_generate
+from manifold_nets.config import DatasetConfig
+from manifold_nets.datasets import dataset_path, load_or_generate
 
 ROOT = Path(__file__).resolve().parents[1]
 CONFIGS = str(ROOT / "configs")
@@ -41,12 +42,12 @@ def test_paper_configs_compose():
     cfg = composed("system=rigid_body", "dataset=paper_train")
     d = cfg.dataset
     assert (d.num_sequences, d.length, d.sigma) == (20000, 100, 0.0)
-    assert dict(d.splits) == {"train": 0.8, "val": 0.1, "test": 0.1} and d.inference is None
+    assert dict(d.splits) == {"train": 0.8, "val": 0.1, "test": 0.1}
     cfg = composed("dataset=paper_inference", "dataset.sigma=0.3")
     assert (cfg.dataset.num_sequences, cfg.dataset.length, cfg.dataset.sigma) == (1000, 1000, 0.3)
     assert dict(cfg.dataset.splits) == {"inference": 1.0}
     cfg = composed()  # defaults: the rigid body and the small dataset
-    assert cfg.dataset.name == "small" and cfg.dataset.inference.length == 200
+    assert cfg.dataset.name == "small" and "inference" not in cfg.dataset
     system = instantiate(cfg.system)
     assert isinstance(system, RigidBody) and system.dt == 0.1 and system.integrator == "exact"
     assert isinstance(OmegaConf.to_object(cfg.dataset), DatasetConfig)
@@ -55,17 +56,17 @@ def test_paper_configs_compose():
 def test_overrides_from_the_command_line():
     cfg = composed(
         "dataset.num_sequences=50", "dataset.length=7", "system.dt=0.05",
-        "system.integrator=rk45", "dataset.inference.sigma=0.4", "~dataset.splits.test",
+        "system.integrator=rk45", "dataset.sigma=0.4", "~dataset.splits.test",
         "dataset.splits.train=0.9",
     )
     assert (cfg.dataset.num_sequences, cfg.dataset.length, cfg.system.dt) == (50, 7, 0.05)
-    assert cfg.dataset.inference.sigma == 0.4
+    assert cfg.dataset.sigma == 0.4
     assert dict(cfg.dataset.splits) == {"train": 0.9, "val": 0.1}
     assert instantiate(cfg.system).integrator == "rk45"
 
 
 @pytest.mark.parametrize(
-    "override", ["dataset.sigmaa=0.3", "dataset.num_sequences=abc", "dataset.inference.lenght=3",
+    "override", ["dataset.sigmaa=0.3", "dataset.num_sequences=abc", "dataset.inference.length=3",
                  "dataset.seed=0.5", "system.dtt=0.2"]
 )
 def test_typos_and_wrong_types_fail_when_composing(override):
@@ -75,12 +76,12 @@ def test_typos_and_wrong_types_fail_when_composing(override):
 
 def test_cache_reuses_the_file_and_regenerates_on_change(tmp_path, monkeypatch):
     body = RigidBody()
-    cfg = tiny(tmp_path, inference=InferenceConfig(num_sequences=3, length=5, sigma=0.2, seed=9))
+    cfg = tiny(tmp_path)
     parts = load_or_generate(body, cfg)
-    assert list(parts) == ["train", "val", "test", "inference"]
-    assert [len(parts[k]) for k in parts] == [8, 1, 1, 3] and parts["inference"].length == 5
+    assert list(parts) == ["train", "val", "test"]
+    assert [len(parts[k]) for k in parts] == [8, 1, 1]
     files = sorted(tmp_path.glob("*.npz"))
-    assert len(files) == 2
+    assert len(files) == 1
     stamps = {f: f.stat().st_mtime_ns for f in files}
 
     def boom(*a, **k):
@@ -93,7 +94,7 @@ def test_cache_reuses_the_file_and_regenerates_on_change(tmp_path, monkeypatch):
     monkeypatch.undo()
     load_or_generate(body, tiny(tmp_path, sigma=0.1))  # changed config: a new file
     load_or_generate(RigidBody(dt=0.2), tiny(tmp_path))  # changed system: a new file
-    assert len(list(tmp_path.glob("*.npz"))) == 4
+    assert len(list(tmp_path.glob("*.npz"))) == 3
     assert not list(tmp_path.glob(".*tmp"))
 
 
@@ -120,9 +121,6 @@ def test_regenerate_rewrites_and_hash_mismatch_is_refused(tmp_path):
         (dict(num_sequences=0), "num_sequences"),
         (dict(length=-5), "length"),
         (dict(splits={"train": 0.7, "val": 0.1}), "sum to"),
-        (dict(inference=InferenceConfig(length=0)), "length"),
-        (dict(inference=InferenceConfig(sigma=-1.0)), "sigma"),
-        (dict(splits={"inference": 1.0}, inference=InferenceConfig()), "may not be called"),
     ],
 )
 def test_bad_configs_fail_before_any_work(tmp_path, kw, match):
@@ -140,19 +138,18 @@ def test_plain_dict_config(tmp_path):
 
 
 def test_command_line(tmp_path):
-    """``python -m manifold_nets.generate`` from another directory: files land in its data/."""
+    """``python -m manifold_nets.cli.generate`` from another directory: files land in its data/."""
     env = dict(os.environ, PYTHONPATH=str(ROOT))
     args = [
-        sys.executable, "-m", "manifold_nets.generate", "dataset.num_sequences=10",
-        "dataset.length=4", "dataset.inference.num_sequences=2", "dataset.inference.length=3",
-        f"hydra.run.dir={tmp_path / 'run'}",
+        sys.executable, "-m", "manifold_nets.cli.generate", "dataset.num_sequences=10",
+        "dataset.length=4", f"hydra.run.dir={tmp_path / 'run'}",
     ]
     out = subprocess.run(args, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr
     files = sorted((tmp_path / "data").glob("rigid_body_*.npz"))
-    assert len(files) == 2 and "inference" in out.stdout
+    assert len(files) == 1 and "train" in out.stdout
     # the same config in this process gives the same bytes
-    cfg = tiny(tmp_path / "here", inference=InferenceConfig(num_sequences=2, length=3))
+    cfg = tiny(tmp_path / "here")
     load_or_generate(RigidBody(), cfg)
     here = sorted((tmp_path / "here").glob("*.npz"))
     assert [f.name for f in here] == [f.name for f in files]
@@ -160,10 +157,12 @@ def test_command_line(tmp_path):
     assert [digest(f) for f in here] == [digest(f) for f in files]
 
 
-def test_command_checks_the_config_before_building_the_system(tmp_path):
-    cfg = composed("dataset.sigma=-1", "system.dt=-1", f"dataset.cache_dir={tmp_path}")
+def test_command_checks_the_config_before_any_work(tmp_path):
+    from manifold_nets.cli.generate import generate
+
+    cfg = composed("dataset.sigma=-1", f"dataset.cache_dir={tmp_path}")
     with pytest.raises(DatasetError, match="sigma"):
-        gen_mod._main(cfg)
+        generate(cfg)
     assert not list(tmp_path.iterdir())
 
 

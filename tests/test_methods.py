@@ -12,12 +12,14 @@ from test_configs import CONFIGS, _compose, _tiny
 
 from examples.rigid_body import RigidBody
 from groups import SE3, SO3, Euclidean, Product
-from manifold_nets import compare
+from manifold_nets import results
+from manifold_nets.cli import compare
 from manifold_nets.baselines import DeadReckoning, RawMeasurement, make_estimator
 from manifold_nets.evaluation import ObserverEstimator, evaluate
 from manifold_nets.relax import relax
-from manifold_nets.train import build_observer, run
-from manifold_nets.train_config import ModelConfig, RunConfig
+from manifold_nets.builders import build_observer
+from manifold_nets.cli.train import run
+from manifold_nets.config import ModelConfig, RunConfig, TrainSettings
 from manifold_nets.training import fit
 
 METHODS = sorted(p.stem for p in (CONFIGS / "method").glob("*.yaml"))
@@ -147,8 +149,8 @@ def test_the_unconstrained_ablation_really_leaves_so3(tmp_path):
     for relaxed in (True, False):
         torch.manual_seed(0)
         model = _unconstrained(system, relaxed=relaxed)
-        fit(model, train, val, out_dir=tmp_path / str(relaxed), epochs=3, batch_size=16,
-            lr=3e-3, progress=False)
+        settings = TrainSettings(epochs=3, batch_size=16, lr=3e-3, progress=False)
+        fit(model, train, val, settings, out_dir=tmp_path / str(relaxed))
         rows[relaxed] = evaluate(model, test, system, skip=2).row
         est = ObserverEstimator(model).estimate(test)
         R = est[..., :9].unflatten(-1, (3, 3)).double()
@@ -192,7 +194,7 @@ def test_comparison_table_ratios_and_figures(tmp_path):
     _fake_run(tmp_path / "learned", "learned", [0.2, 0.1], 1.5, trained=True)
     out = tmp_path / "cmp"
     assert compare.main([str(tmp_path / "sweep"), str(tmp_path / "learned"), "--out", str(out)]) == 0
-    rows = compare.comparison_rows(compare.collect_runs([tmp_path / "sweep", tmp_path / "learned"]))
+    rows = results.comparison_rows(results.collect_runs([tmp_path / "sweep", tmp_path / "learned"]))
     assert [r["method"] for r in rows] == ["ekf", "raw", "learned", "learned / ekf"] * 2
     assert [r["sigma"] for r in rows] == [0.1] * 4 + [0.2] * 4
     ratio = rows[3]
@@ -201,7 +203,7 @@ def test_comparison_table_ratios_and_figures(tmp_path):
                  "comparison_sigma0.1.png", "comparison_sigma0.2.png"):
         assert (out / name).stat().st_size > 0
     # without a raw run the measurement is a row of its own
-    rows = compare.comparison_rows(compare.collect_runs([tmp_path / "learned"]))
+    rows = results.comparison_rows(results.collect_runs([tmp_path / "learned"]))
     assert rows[0]["method"] == "measurement" and rows[0]["R"] == pytest.approx(0.2)
 
 
@@ -210,7 +212,7 @@ def test_comparison_tells_runs_of_one_method_apart(tmp_path):
     for seed, value in ((0, 1.5), (1, 2.0)):  # a seed sweep of one observer
         _fake_run(tmp_path / "sweep" / str(seed), "learned", [0.1], value, trained=True, seed=seed)
     _fake_run(tmp_path / "again", "learned", [0.1], 3.0, trained=True, seed=1)  # a repeat
-    rows = compare.comparison_rows(compare.collect_runs([tmp_path]))
+    rows = results.comparison_rows(results.collect_runs([tmp_path]))
     assert [r["method"] for r in rows] == [
         "measurement",
         "learned seed 1 #1",  # again/
@@ -224,7 +226,7 @@ def test_comparison_tells_runs_of_one_method_apart(tmp_path):
     by = {r["method"]: r for r in rows}
     assert by["learned seed 0 / ekf"]["R"] == pytest.approx(1.5)
     assert len({r["method"] for r in rows}) == len(rows)  # every row its own name
-    curves, _ = compare._step_curves(compare.collect_runs([tmp_path]), 0.1)
+    curves, _ = results.step_curves(results.collect_runs([tmp_path]), 0.1)
     assert len(curves) == 4  # one line per run in the step figure, none overwritten
 
 

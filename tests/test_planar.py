@@ -19,7 +19,7 @@ from examples.planar.filters import PlanarEKF
 from examples.planar.system import course_over_ground
 from groups import SE2, SO2
 from manifold_nets.data import load_dataset
-from manifold_nets.generate import DatasetConfig, load_or_generate, make_dataset
+from manifold_nets import DatasetConfig, load_or_generate, make_dataset
 
 F64 = torch.float64
 CONFIGS = str(Path(__file__).resolve().parents[1] / "configs")
@@ -284,7 +284,7 @@ def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
     from examples.attitude.compare import compare_run, load_run
     from examples.planar.compare import planar_estimators
     from manifold_nets.evaluation import rollout
-    from manifold_nets.train import run
+    from manifold_nets.cli.train import run
 
     tiny = [
         "experiment=planar", f"dataset.cache_dir={tmp_path / 'data'}", "dataset.num_sequences=40",

@@ -11,7 +11,7 @@ import torch
 from examples.rigid_body import RigidBody
 from examples.rigid_body.system import POSE_GROUPS
 from groups import SE3, SO3
-from manifold_nets.generate import dataset_path
+from manifold_nets.datasets import dataset_path
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.training import fit
 

@@ -14,8 +14,10 @@ import torch
 from groups import SO3, Euclidean, Product
 from manifold_nets.checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.evaluation import evaluate, plot_errors, write_table
+from manifold_nets.evaluation import evaluate
+from manifold_nets.reporting import plot_errors, write_table
 from manifold_nets.observer import ResidualObserver
+from manifold_nets import MeasurementNoise, TrainSettings
 from manifold_nets.training import TrainingDiverged, fit, learning_rate, validation_loss
 
 GROUP = Product(SO3(), Euclidean(3), Euclidean(2), names=("R", "p", "b"))
@@ -63,13 +65,21 @@ def make_model(seed=0, hidden=16) -> ResidualObserver:
     return ResidualObserver(GROUP, MEAS, hidden_size=hidden, num_layers=1, update={"b": "absolute"})
 
 
-FIT = {"epochs": 3, "batch_size": 8, "lr": 1e-2, "progress": False, "seed": 7}
+FIT = {"epochs": 3, "batch_size": 8, "lr": 1e-2, "progress": False}
+
+
+def train_model(model, train, val, out_dir, seed=7, transform=None, **settings):
+    """``fit`` with the test's settings (``FIT``) and ``settings`` on top."""
+    return fit(
+        model, train, val, TrainSettings(**{**FIT, **settings}), out_dir=out_dir, seed=seed,
+        transform=transform,
+    )
 
 
 def test_training_lowers_the_loss(tmp_path):
     train, val = make_data(32, seed=0), make_data(8, seed=1)
     model = make_model()
-    res = fit(model, train, val, out_dir=tmp_path, **FIT)
+    res = train_model(model, train, val, tmp_path)
     losses = [h["val_loss"] for h in res.history]
     assert len(losses) == 4 and losses[0] == res.history[0]["val_loss"]
     assert min(losses[1:]) < 0.7 * losses[0], losses
@@ -91,15 +101,15 @@ def test_training_lowers_the_loss(tmp_path):
 @pytest.mark.parametrize("schedule", ["constant", "cosine"])
 def test_resume_gives_the_uninterrupted_result(tmp_path, schedule):
     train, val = make_data(24, seed=0), make_data(8, seed=1)
-    noisy = {"noise_sigma": (0.0, 0.3), "system": EmbeddingSystem()}  # RNG state matters too
-    noisy["schedule"] = schedule  # the learning rate of a resumed epoch too
+    # the noise's RNG state matters too, and the learning rate of a resumed epoch
+    noisy = {"transform": MeasurementNoise(EmbeddingSystem(), 0.0, 0.3), "schedule": schedule}
     straight = make_model()
-    fit(straight, train, val, out_dir=tmp_path / "a", **FIT, **noisy)
+    train_model(straight, train, val, tmp_path / "a", **noisy)
 
     first = make_model()
-    fit(first, train, val, out_dir=tmp_path / "b", **{**FIT, "epochs": 1}, **noisy)
+    train_model(first, train, val, tmp_path / "b", epochs=1, **noisy)
     resumed = make_model(seed=123)  # different init: everything must come from the checkpoint
-    res = fit(resumed, train, val, out_dir=tmp_path / "c", resume=tmp_path / "b", **FIT, **noisy)
+    res = train_model(resumed, train, val, tmp_path / "c", resume=str(tmp_path / "b"), **noisy)
 
     for (k, a), b in zip(straight.state_dict().items(), resumed.state_dict().values()):
         torch.testing.assert_close(a, b, rtol=0, atol=0, msg=k)
@@ -123,17 +133,17 @@ def test_learning_rate_schedules():
 @pytest.mark.parametrize(
     "kwargs, match",
     [
-        ({"schedule": "linear"}, "train.schedule='linear'.*constant, cosine"),
-        ({"schedule": "cosine", "lr_min": 0.1}, "train.lr_min"),
-        ({"schedule": "cosine", "lr_min": -1.0}, "train.lr_min"),
-        ({"lr": 0.0}, "train.lr must be a positive"),
-        ({"lr": float("nan")}, "train.lr must be a positive"),
+        ({"schedule": "linear"}, "schedule='linear'.*constant, cosine"),
+        ({"schedule": "cosine", "lr_min": 0.1}, "lr_min"),
+        ({"schedule": "cosine", "lr_min": -1.0}, "lr_min"),
+        ({"lr": 0.0}, "lr must be a positive"),
+        ({"lr": float("nan")}, "lr must be a positive"),
     ],
 )
 def test_bad_learning_rate_settings_fail_before_any_work(tmp_path, kwargs, match):
     settings = {**FIT, **kwargs}
     with pytest.raises(ValueError, match=match):
-        fit(make_model(), make_data(8), make_data(4, seed=1), out_dir=tmp_path / "run", **settings)
+        train_model(make_model(), make_data(8), make_data(4, seed=1), tmp_path / "run", **kwargs)
     assert not (tmp_path / "run").exists()
     with pytest.raises(ValueError, match=match):
         learning_rate(
@@ -146,9 +156,7 @@ def test_cosine_schedule_sets_each_epochs_rate(tmp_path):
     runs = {}
     for schedule in ("constant", "cosine"):
         model = make_model()
-        res = fit(
-            model, train, val, out_dir=tmp_path / schedule, **FIT, schedule=schedule, lr_min=1e-4
-        )
+        res = train_model(model, train, val, tmp_path / schedule, schedule=schedule, lr_min=1e-4)
         runs[schedule] = model
         want = [
             learning_rate(e, epochs=3, lr=1e-2, schedule=schedule, lr_min=1e-4) for e in (1, 2, 3)
@@ -202,31 +210,22 @@ def test_nan_loss_stops_with_a_clear_message_and_keeps_best(tmp_path):
     with pytest.raises(
         TrainingDiverged, match=r"training loss became nan at epoch 1, batch \d.*best checkpoint"
     ):
-        fit(make_model(), train, val, out_dir=tmp_path, **{**FIT, "batch_size": 16})
+        train_model(make_model(), train, val, tmp_path, batch_size=16)
     assert (tmp_path / "checkpoints" / "best.pt").is_file()
 
 
-def test_noise_augmentation_needs_the_system_hook(tmp_path):
-    train, val = make_data(8), make_data(4, seed=1)
+def test_noise_augmentation_needs_the_system_hook():
     with pytest.raises(ValueError, match="apply_noise"):
-        fit(
-            make_model(),
-            train,
-            val,
-            out_dir=tmp_path,
-            noise_sigma=(0.0, 0.2),
-            system=object(),
-            **FIT,
-        )
-    with pytest.raises(ValueError, match="0 <= min <= max"):
-        fit(make_model(), train, val, out_dir=tmp_path, noise_sigma=(0.3, 0.2), **FIT)
+        MeasurementNoise(object(), 0.0, 0.2)
+    with pytest.raises(ValueError, match="0 <= sigma_min <= sigma_max"):
+        MeasurementNoise(EmbeddingSystem(), 0.3, 0.2)
 
 
 def test_training_rejects_data_of_another_system(tmp_path):
     bad = make_data(8)
     bad = TrajectoryDataset(bad.states, bad.measurements[..., :10], bad.inputs, {})
     with pytest.raises(ValueError, match="measurements of size 10"):
-        fit(make_model(), bad, make_data(4), out_dir=tmp_path, **FIT)
+        train_model(make_model(), bad, make_data(4), tmp_path)
 
 
 def test_evaluation_table_and_figure(tmp_path):

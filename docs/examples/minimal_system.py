@@ -22,11 +22,16 @@ import tempfile
 import torch
 
 from groups import SO2
-from manifold_nets.evaluation import evaluate
-from manifold_nets.generate import DatasetConfig, load_or_generate, make_dataset
-from manifold_nets.observer import ResidualObserver
-from manifold_nets.system import System
-from manifold_nets.training import fit
+from manifold_nets import (
+    DatasetConfig,
+    ResidualObserver,
+    System,
+    TrainSettings,
+    evaluate,
+    fit,
+    load_or_generate,
+    make_dataset,
+)
 
 
 class Turntable(System):
@@ -102,8 +107,8 @@ def main() -> None:
     torch.manual_seed(0)
     observer = ResidualObserver(system.group, system.measurement_dim, hidden_size=32, num_layers=1)
     with tempfile.TemporaryDirectory() as out:
-        fit(observer, data.split("train"), data.split("val"), out_dir=out, epochs=5,
-            batch_size=16, lr=3e-3, grad_clip=1.0, progress=False)
+        settings = TrainSettings(epochs=5, batch_size=16, lr=3e-3, grad_clip=1.0, progress=False)
+        fit(observer, data.split("train"), data.split("val"), settings, out_dir=out)
     result = evaluate(observer, data.split("val"), system, skip=10)
     # 48 sequences and 5 epochs teach it little: this shows the calls, not a result
     print(f"observer after 5 epochs: ||Rhat - R||_F = {result.row['x est']:.3f}, membership "

@@ -4,7 +4,7 @@
     python -m examples.planar.compare outputs/planar/<run id>                # the vehicle
     python -m examples.attitude.compare <run> --sigmas 0.3 --length 500 --tag long  # other sets
 
-A training run folder (``python -m manifold_nets.train``) holds its resolved ``config.yaml`` and
+A training run folder (``python -m manifold_nets.cli.train``) holds its resolved ``config.yaml`` and
 ``checkpoints/best.pt``. :func:`compare_run` rebuilds the system and the observer from them,
 loads (or generates) the run's inference sets (``eval.*`` of the config; overridable), and runs
 on each, over the same sequences:
@@ -21,8 +21,9 @@ the ratio of the learned observer's error to the EKF's (below 1: the observer is
 ``results/compare_sigma<s>.png``, the mean error against the step per metric and method
 (``compare_<tag>...`` with ``--tag``, so that other inference sets do not overwrite them).
 
-Only public pieces of ``manifold_nets`` are used (``build_observer``, ``load_checkpoint``,
-``load_inference_data``, ``rollout``); the estimators follow ``manifold_nets.baselines.Estimator``.
+Only library pieces of ``manifold_nets`` are used (``build_system``, ``build_observer``,
+``load_weights``, ``inference_data``, ``rollout``), no command; the estimators follow
+``manifold_nets.baselines.Estimator``.
 """
 
 from __future__ import annotations
@@ -35,12 +36,12 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from manifold_nets.checkpoint import load_checkpoint
-from manifold_nets.compare import plot_comparison
-from manifold_nets.evaluation import rollout, write_table
-from manifold_nets.train import build_observer, load_inference_data
-from manifold_nets.train_config import RunConfig
-from manifold_nets.training import resolve_checkpoint
+from manifold_nets.builders import build_observer, build_system
+from manifold_nets.checkpoint import load_weights
+from manifold_nets.config import RunConfig
+from manifold_nets.datasets import inference_data
+from manifold_nets.evaluation import rollout
+from manifold_nets.reporting import plot_comparison, write_table
 
 __all__ = ["compare_run", "load_run", "main"]
 
@@ -51,19 +52,16 @@ EstimatorFactory = Callable[[object, float], Sequence[object]]
 def load_run(run_dir: str | Path):
     """``(config, system, observer)`` of a training run folder; the observer holds the best
     validation weights (its signature is checked against the config's model)."""
-    from hydra.utils import instantiate
-
     run_dir = Path(run_dir)
     path = run_dir / "config.yaml"
     if not path.is_file():
         raise FileNotFoundError(
-            f"{run_dir} has no config.yaml: not a manifold_nets.train run folder."
+            f"{run_dir} has no config.yaml: not a run folder of the train command."
         )
     cfg = OmegaConf.merge(OmegaConf.structured(RunConfig), OmegaConf.load(path))  # typed
-    system = instantiate(cfg.system)
+    system = build_system(cfg.system)
     model = build_observer(system.group, system.measurement_dim, system.input_dim, cfg.model)
-    ckpt = load_checkpoint(resolve_checkpoint(run_dir, "best.pt"), model.signature())
-    model.load_state_dict(ckpt["model"])
+    load_weights(model, run_dir)
     return cfg, system, model
 
 
@@ -92,18 +90,21 @@ def compare_run(
     """
     cfg, system, model = load_run(run_dir)
     if sigmas is not None:
-        cfg.eval.sigmas, cfg.eval.sigma = [float(s) for s in sigmas], None
+        cfg.eval.sigmas = [float(s) for s in sigmas]
     if num_sequences is not None:
         cfg.eval.num_sequences = int(num_sequences)
     if length is not None:
         cfg.eval.length = int(length)
-    levels = [cfg.eval.sigma] if cfg.eval.sigma is not None else list(cfg.eval.sigmas)
+    levels = list(cfg.eval.sigmas)
+    dataset = OmegaConf.to_object(cfg.dataset)
     skip = int(cfg.eval.skip_steps)
     rows: list[dict] = []
     out = Path(run_dir) / "results"
     stem = f"compare_{tag}" if tag else "compare"
     for sigma in levels:
-        data = load_inference_data(system, cfg, float(sigma))
+        data = inference_data(
+            system, dataset, cfg.eval, float(sigma), cache_dir=Path(dataset.cache_dir).absolute()
+        )
         t = data.length
         curves: dict[str, dict[str, torch.Tensor]] = {}
         methods = [("learned", rollout(model, data).double())]
@@ -140,7 +141,7 @@ def main(estimators: EstimatorFactory, argv: Sequence[str] | None = None) -> lis
     """The command line of :func:`compare_run` (``run_dir [--sigmas ...] [--num-sequences N]
     [--length T] [--tag NAME] [--no-plots]``); prints the Markdown table."""
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("run_dir", help="a manifold_nets.train run folder")
+    p.add_argument("run_dir", help="a run folder of the train command")
     p.add_argument("--sigmas", type=float, nargs="+", default=None)
     p.add_argument("--num-sequences", type=int, default=None)
     p.add_argument("--length", type=int, default=None)

@@ -1,10 +1,15 @@
-"""Structured configs of ``python -m manifold_nets.train``: typed dataclasses in the ConfigStore.
+"""The config schema: typed dataclasses for a run, which are also the library's settings objects.
 
-``configs/train.yaml`` starts from the schema :class:`RunConfig` (stored as ``run_schema``), so
-every key of the ``model``, ``train``, ``eval`` and ``dataset`` groups and every command-line
+``configs/train.yaml`` starts from :class:`RunConfig` (stored in hydra's ConfigStore as
+``run_schema``; :class:`DatasetConfig` as ``dataset/dataset_schema``), so every key of the
+``dataset``, ``model``, ``train``, ``eval`` and ``method`` groups and every command-line
 override is checked when the config is composed: a misspelt key (``model.hiden_size=64``) or a
 wrong type (``train.epochs=ten``) fails with hydra's message naming the key and the schema,
 before any work. ``system`` is free-form: a ``_target_`` class and its own parameters.
+
+The same dataclasses are what the library takes: :func:`manifold_nets.training.fit` a
+:class:`TrainSettings`, :func:`manifold_nets.builders.build_observer` a :class:`ModelConfig`,
+:func:`manifold_nets.datasets.load_or_generate` a :class:`DatasetConfig`.
 
 Importing this module registers the schema and the ``mn_run_id`` resolver used in the output
 folder names (a timestamp and the process id, so two runs can never share a folder).
@@ -20,9 +25,8 @@ from typing import Any, Optional
 from hydra.core.config_store import ConfigStore
 from omegaconf import MISSING, OmegaConf
 
-from .generate import DatasetConfig
-
 __all__ = [
+    "DatasetConfig",
     "MethodConfig",
     "ModelConfig",
     "NoiseConfig",
@@ -34,6 +38,29 @@ __all__ = [
 ]
 
 DTYPES = ("float32", "float64")
+
+
+@dataclass
+class DatasetConfig:
+    """One simulated dataset file (``configs/dataset/``): sizes, noise, seed, splits, cache."""
+
+    #: A label for logs; not part of the cache key.
+    name: str = "custom"
+    num_sequences: int = 2000
+    length: int = 50
+    #: Standard deviation of every measurement noise component (0: noise-free).
+    sigma: float = 0.0
+    seed: int = 0
+    #: Fractions of the sequences, in order, as contiguous ranges; must sum to 1.
+    #: ``None`` means ``{train: 0.8, val: 0.1, test: 0.1}``. (A command-line dict override merges
+    #: into the existing one: drop a split with ``~dataset.splits.test``.)
+    splits: Optional[dict[str, float]] = None
+    #: Where the files go; relative paths are taken from the directory the command ran in.
+    cache_dir: str = "data"
+    #: Write the files again even when a cached file exists.
+    regenerate: bool = False
+    #: Show a progress bar (only on a terminal).
+    progress: bool = True
 
 
 @dataclass
@@ -111,8 +138,8 @@ class TrainSettings:
     device: str = "cpu"
     #: torch intra-op threads (``null``: torch's default).
     threads: Optional[int] = None
-    #: Compile the observer's step with ``torch.compile`` for training (fused kernels: 1.2-2x
-    #: faster epochs on the CPU here, after ~45 s of compilation; needs a C++ compiler).
+    #: Compile the observer's step with ``torch.compile`` for training (fused kernels, faster
+    #: epochs after a one-off compilation; needs a C++ compiler).
     compile: bool = False
     #: Continue from a checkpoint: a ``last.pt`` file or the run folder that holds one.
     resume: Optional[str] = None
@@ -128,10 +155,9 @@ class TrainSettings:
 class EvalConfig:
     """Evaluation on noisy inference sets (``configs/eval/``), the paper's table and figure."""
 
-    #: Noise levels of the inference sets, one table row each.
+    #: Noise levels of the inference sets, one table row each (one per job in a sweep:
+    #: ``-m 'eval.sigmas=[0.1],[0.2]'``).
     sigmas: list[float] = field(default_factory=lambda: [0.1])
-    #: One noise level instead of ``sigmas`` (for sweeps: ``-m eval.sigma=0.1,0.2``).
-    sigma: Optional[float] = None
     #: Size and seed of each inference set (the paper: 1000 sequences of 1000 steps).
     num_sequences: int = 1000
     length: int = 1000
@@ -196,8 +222,10 @@ def _run_id() -> str:
 
 
 def register_configs() -> None:
-    """Registers the schema as ``run_schema`` and the ``mn_run_id`` resolver (idempotent)."""
+    """Registers the schema (``run_schema``, ``dataset/dataset_schema``) and the ``mn_run_id``
+    resolver (idempotent)."""
     ConfigStore.instance().store(name="run_schema", node=RunConfig)
+    ConfigStore.instance().store(group="dataset", name="dataset_schema", node=DatasetConfig)
     if not OmegaConf.has_resolver("mn_run_id"):
         OmegaConf.register_new_resolver("mn_run_id", _run_id, use_cache=True)
 

@@ -1,0 +1,142 @@
+"""From config to objects: the system, the observer, a baseline estimator, the device.
+
+Each ``build_*`` takes one part of a run's config (the dataclasses of
+:mod:`manifold_nets.config`, or the same keys in an omegaconf ``DictConfig``) and returns the
+library object, checking the part against what it must fit and naming the config key in its
+errors. The commands call these; so can a user's own script.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+
+from groups import LieGroup
+
+from .config import DTYPES, MethodConfig, ModelConfig
+from .cores import GRUCore, RecurrentCore
+from .inputs import ObserverInputs
+from .observer import ResidualObserver
+from .relax import relax
+from .system import System
+
+__all__ = [
+    "LEARNED_METHODS",
+    "build_system",
+    "build_observer",
+    "build_estimator_factory",
+    "resolve_device",
+    "torch_dtype",
+]
+
+#: The methods that are the residual observer (``method.name``); any other is an estimator.
+LEARNED_METHODS = ("learned", "untrained")
+
+
+def torch_dtype(name: str, key: str) -> torch.dtype:
+    """``torch.float32`` or ``torch.float64`` from its name; ``key`` names the setting in errors."""
+    if name not in DTYPES:
+        raise ValueError(f"{key} must be one of {DTYPES}, got {name!r}.")
+    return getattr(torch, name)
+
+
+def build_system(system_cfg: Any) -> System:
+    """The system of a ``system`` config (``_target_`` and its parameters), checked to be a
+    :class:`~manifold_nets.system.System`."""
+    from hydra.utils import instantiate
+
+    system = instantiate(system_cfg)
+    if not isinstance(system, System):
+        raise TypeError(
+            f"the configured system {type(system).__name__} is not a manifold_nets.System; "
+            "configs/system/<name>.yaml must name a System subclass in its _target_."
+        )
+    return system
+
+
+def _core_class(name: str) -> type[RecurrentCore]:
+    """``gru`` or the dotted path of a :class:`~manifold_nets.cores.RecurrentCore` subclass."""
+    if name == "gru":
+        return GRUCore
+    from hydra.utils import get_class
+
+    try:
+        cls = get_class(name)
+    except Exception as err:
+        raise ValueError(
+            f"model.core must be 'gru' or the dotted path of a RecurrentCore subclass; "
+            f"{name!r} could not be imported ({err})."
+        ) from None
+    if not (isinstance(cls, type) and issubclass(cls, RecurrentCore)):
+        raise ValueError(f"model.core={name!r} is not a RecurrentCore subclass.")
+    return cls
+
+
+def build_observer(
+    group: LieGroup, measurement_dim: int, input_dim: int, model: ModelConfig | Any
+) -> ResidualObserver:
+    """The observer of a ``model`` config (:class:`~manifold_nets.config.ModelConfig`) for a
+    system's ``group`` and sizes; ``model.relax`` takes factors off the group
+    (:func:`~manifold_nets.relax.relax`)."""
+    group = relax(group, list(model.relax))
+    inputs = ObserverInputs(dict(model.innovation), tuple(model.relative_only))
+    in_size = inputs.core_input_size(group, measurement_dim, input_dim)
+    core_cls = _core_class(model.core)
+    core = core_cls(
+        in_size, group.tangent_dim, hidden_size=model.hidden_size, num_layers=model.num_layers
+    )
+    rules = dict(model.updates)
+    unknown = sorted(set(rules) - set(group.factor_names))
+    if unknown:
+        raise ValueError(
+            f"model.updates names factors {unknown} that the group {group!r} does not have; "
+            f"its factors: {list(group.factor_names)}."
+        )
+    update = {name: rules.get(name, model.default_update) for name in group.factor_names}
+    observer = ResidualObserver(
+        group,
+        measurement_dim,
+        input_dim,
+        core,
+        update=update,
+        inputs=inputs,
+        state_dtype=torch_dtype(model.state_dtype, "model.state_dtype"),
+    )
+    return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
+
+
+def build_estimator_factory(system: System, method: MethodConfig | Any) -> Callable[..., Any]:
+    """The estimator factory of a non-learned ``method`` config: ``method.target`` (a dotted
+    path) or ``system.estimators()[method.name]``. Raises before any work for an unknown one."""
+    if method.target:
+        from hydra.utils import get_object
+
+        try:
+            return get_object(method.target)
+        except Exception as err:
+            raise ValueError(
+                f"method.target={method.target!r} could not be imported ({err}); give the dotted "
+                "path of a factory (system, sigma=..., **params) -> Estimator."
+            ) from None
+    table = system.estimators()
+    if method.name not in table:
+        raise ValueError(
+            f"method={method.name!r}: {type(system).__name__} has no estimator of that name; the "
+            f"methods are {list(LEARNED_METHODS)} (the observer) and {sorted(table)} "
+            "(System.estimators()); or set method.target to the dotted path of a factory."
+        )
+    return table[method.name]
+
+
+def resolve_device(name: str) -> torch.device:
+    """``cpu``, ``cuda[:i]`` or ``auto``; a clear error when CUDA is asked for but missing."""
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    dev = torch.device(name)
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise RuntimeError(
+            f"train.device={name!r} but CUDA is not available here; use train.device=cpu."
+        )
+    return dev

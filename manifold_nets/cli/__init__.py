@@ -1,0 +1,23 @@
+"""The commands: thin hydra and argparse entry points over the library.
+
+======================================  ==================================================
+``python -m manifold_nets.cli.train``    train the observer (or pick a baseline), evaluate it
+``python -m manifold_nets.cli.evaluate`` evaluate a trained run folder or a baseline
+``python -m manifold_nets.cli.generate`` simulate (or find in the cache) one dataset
+``python -m manifold_nets.cli.sweep``    one table for a hydra multirun
+``python -m manifold_nets.cli.compare``  methods side by side, one table per sigma
+======================================  ==================================================
+
+Each command builds objects from its config with :mod:`manifold_nets.builders`, logs a line,
+and calls the library; no library module imports a command.
+"""
+
+import os
+
+# OpenMP threads that spin while they wait make torch 10-50x slower as soon as another process
+# shares the cores; sleeping waits cost a wake-up per parallel region instead. Only effective
+# when a command imports torch first; an OMP_WAIT_POLICY set by the user wins.
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+#: Where the hydra commands find their configs (the repository's ``configs/``).
+CONFIG_PATH = "../../configs"

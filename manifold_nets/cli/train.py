@@ -1,0 +1,176 @@
+"""``python -m manifold_nets.cli.train``: data -> training -> the paper's table and figure, by hydra.
+
+One command generates (or reuses from the cache) the datasets of the configured system, trains
+the residual observer, keeps the best-validation model, evaluates it on a noisy inference set
+per sigma and writes everything into its own run folder::
+
+    python -m manifold_nets.cli.train experiment=default            # small: minutes on a CPU
+    python -m manifold_nets.cli.train experiment=default debug=tiny # seconds: a smoke test
+    python -m manifold_nets.cli.train experiment=paper_rigid_body   # the paper's sizes
+    python -m manifold_nets.cli.train -m experiment=default seed=0,1,2
+    python -m manifold_nets.cli.train experiment=default method=ekf # a baseline, same evaluation
+
+``method=`` (``configs/method/``) picks what produces the estimates: ``learned`` (default: train
+the observer, or evaluate ``eval.checkpoint``), ``untrained`` (the observer at its seeded
+initialisation), or a classical estimator of the system (``System.estimators()``). Every method
+goes through the same evaluation (:mod:`manifold_nets.cli.evaluate`).
+
+A run folder (``outputs/<name>/<date_time_pid>/``, or ``multirun/<name>/<date_time_pid>/<job>/``)
+holds ``config.yaml`` (resolved), ``log.csv``/``log.json`` (per epoch), ``checkpoints/best.pt``
+and ``last.pt``, and ``results/`` (see the evaluation command). Interrupted? Resume with
+``train.resume=<run folder>``.
+
+:func:`run` does the work of one composed config (what tests call); :func:`train` is the
+training task alone.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import torch
+from omegaconf import DictConfig, OmegaConf
+
+from manifold_nets.atomic import write_text_atomic
+from manifold_nets.augmentation import MeasurementNoise
+from manifold_nets.builders import LEARNED_METHODS, build_observer, build_system, resolve_device
+from manifold_nets.checkpoint import load_checkpoint, load_weights
+from manifold_nets.config import RunConfig
+from manifold_nets.datasets import training_data
+from manifold_nets.training import check_settings, fit, validation_loss
+
+from . import CONFIG_PATH
+from .evaluate import absolute, check_sigmas, evaluate
+
+__all__ = ["check_config", "main", "run", "train"]
+
+log = logging.getLogger(__name__)
+
+
+def check_config(cfg: DictConfig) -> None:
+    """Raises ``ValueError`` unless ``cfg`` fits :class:`~manifold_nets.config.RunConfig`.
+
+    Composing already checks overrides; this also catches keys appended with ``+``.
+    """
+    try:
+        OmegaConf.merge(OmegaConf.structured(RunConfig), OmegaConf.to_container(cfg))
+    except Exception as err:  # omegaconf's ConfigKeyError / ValidationError
+        msg = str(err).splitlines()[0]
+        raise ValueError(
+            f"the config does not fit the schema: {msg} (not in the schema "
+            "manifold_nets/config.py; check the spelling)."
+        ) from None
+
+
+def _check_before_work(cfg: DictConfig) -> None:
+    """Every check that needs no work: the schema, the sigmas, the training settings."""
+    check_config(cfg)
+    check_sigmas(cfg.eval.sigmas)
+    try:
+        check_settings(OmegaConf.to_object(cfg.train))
+    except ValueError as err:
+        raise ValueError(f"train: {err}") from None
+    if cfg.train.init_from and cfg.train.resume:
+        raise ValueError(
+            f"train.init_from={cfg.train.init_from!r} and train.resume={cfg.train.resume!r}: "
+            "resume continues a run (its weights, optimizer and epoch), init_from starts a new "
+            "one from a model's weights; set only one."
+        )
+    if cfg.method.name == "untrained" and cfg.eval.checkpoint:
+        raise ValueError(
+            "method=untrained evaluates the observer at its initialisation; it cannot load "
+            f"eval.checkpoint={cfg.eval.checkpoint!r} (use method=learned for that)."
+        )
+
+
+def train(cfg: DictConfig, system, model, out_dir: Path) -> dict[str, Any]:
+    """The training task: data, fit, the best weights back into ``model``, the test loss.
+
+    Returns what the run's ``metrics.json`` records of it.
+    """
+    t, info = cfg.train, {}
+    if t.init_from:
+        path, ckpt = load_weights(model, absolute(t.init_from), model.device)
+        info["init_from"] = str(path)
+        log.info("starting from the weights of %s (epoch %s)", path, ckpt["epoch"])
+    dataset = OmegaConf.to_object(cfg.dataset)
+    parts = training_data(
+        system,
+        dataset,
+        data_file=absolute(cfg.data_file) if cfg.data_file else None,
+        noise_levels=list(t.noise.levels),
+        cache_dir=absolute(dataset.cache_dir),
+    )
+    if t.compile:
+        model.compile_step()
+        log.info("the observer's step is compiled (torch.compile): the first batch waits")
+    settings = OmegaConf.to_object(t)
+    if settings.resume:
+        settings = replace(settings, resume=absolute(settings.resume))
+    noise = None
+    if t.noise.sigma_max > 0:
+        noise = MeasurementNoise(system, t.noise.sigma_min, t.noise.sigma_max)
+    t0 = time.perf_counter()
+    result = fit(
+        model, parts["train"], parts["val"], settings, out_dir=out_dir, seed=int(cfg.seed),
+        transform=noise, config=OmegaConf.to_container(cfg, resolve=True),
+    )
+    best = load_checkpoint(result.best_path, model.signature(), map_location=model.device)
+    model.load_state_dict(best["model"])
+    info.update(
+        best_epoch=result.best_epoch,
+        best_val_loss=result.best_val_loss,
+        train_seconds=time.perf_counter() - t0,
+        checkpoint=str(result.best_path),
+    )
+    if cfg.eval.test_split and "test" in parts:
+        info["test_loss"] = validation_loss(model, parts["test"], t.eval_batch_size)
+        log.info("test loss of the best model (epoch %d): %.5g", result.best_epoch,
+                 info["test_loss"])
+    return info
+
+
+def run(cfg: DictConfig, out_dir: str | Path) -> dict:
+    """Runs one experiment into ``out_dir``: training (when the method learns and no
+    ``eval.checkpoint`` is given), then the evaluation. Returns the metrics."""
+    _check_before_work(cfg)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    resolved = OmegaConf.to_container(cfg, resolve=True)
+    write_text_atomic(out_dir / "config.yaml", OmegaConf.to_yaml(resolved))
+    if cfg.train.threads is not None:
+        torch.set_num_threads(int(cfg.train.threads))
+    device = resolve_device(cfg.train.device)
+    system = build_system(cfg.system)
+    model, info = None, {}
+    if cfg.method.name in LEARNED_METHODS and not cfg.method.target:
+        torch.manual_seed(int(cfg.seed))
+        model = build_observer(
+            system.group, system.measurement_dim, system.input_dim, cfg.model
+        ).to(device)
+        n_params = sum(p.numel() for p in model.parameters())
+        log.info("observer: %s, %d parameters", model.signature(), n_params)
+        if cfg.method.name == "learned" and not cfg.eval.checkpoint:
+            info = train(cfg, system, model, out_dir)
+    return evaluate(cfg, system, out_dir, model=model, info=info)
+
+
+def _hydra_main(cfg: DictConfig) -> None:
+    from hydra.core.hydra_config import HydraConfig
+
+    run(cfg, HydraConfig.get().runtime.output_dir)
+
+
+def main() -> None:
+    """The command-line entry (config root ``configs/``, primary config ``train.yaml``)."""
+    import hydra
+
+    hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")(_hydra_main)()
+
+
+if __name__ == "__main__":
+    main()
