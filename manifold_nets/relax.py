@@ -38,7 +38,7 @@ def relax(group: LieGroup, names: Sequence[str]) -> LieGroup:
     unknown = [n for n in names if n not in have]
     if unknown:
         raise ValueError(
-            f"model.relax names factors {unknown} that the group {group!r} does not have; its "
+            f"relax names factors {unknown} that the group {group!r} does not have; its "
             f"factors: {have}."
         )
     out = []

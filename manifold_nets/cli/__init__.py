@@ -14,9 +14,10 @@ and calls the library; no library module imports a command.
 
 import os
 
-# OpenMP threads that spin while they wait make torch 10-50x slower as soon as another process
-# shares the cores; sleeping waits cost a wake-up per parallel region instead. Only effective
-# when a command imports torch first; an OMP_WAIT_POLICY set by the user wins.
+# OpenMP threads that spin while they wait slow torch down many times as soon as another process
+# shares the cores (benchmarks/README.md); sleeping waits cost a wake-up per parallel region
+# instead. Only effective when a command imports torch first; an OMP_WAIT_POLICY set by the
+# user wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 #: Where the hydra commands find their configs (the repository's ``configs/``).
