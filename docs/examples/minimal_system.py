@@ -63,10 +63,9 @@ class Turntable(System):
         dt = self.dt if dt is None else dt
         return x @ self.group.exp(drive * dt)
 
-    def measure(self, x, drive, noise=None):
-        """``(cos theta, sin theta, omega) + n``; ``noise=None`` is the noise-free model."""
-        y = torch.cat((x[..., :, 0], drive), dim=-1)  # R e_1 = (cos theta, sin theta)
-        return y if noise is None else y + noise
+    def observe(self, x, drive):
+        """The noise-free ``(cos theta, sin theta, omega)``; the noise is added to it."""
+        return torch.cat((x[..., :, 0], drive), dim=-1)  # R e_1 = (cos theta, sin theta)
 
 
 def main() -> None:
