@@ -65,7 +65,9 @@ class Turntable(System):
 
     def observe(self, x, drive):
         """The noise-free ``(cos theta, sin theta, omega)``; the noise is added to it."""
-        return torch.cat((x[..., :, 0], drive), dim=-1)  # R e_1 = (cos theta, sin theta)
+        marker = x[..., :, 0]  # R e_1 = (cos theta, sin theta)
+        batch = torch.broadcast_shapes(marker.shape[:-1], drive.shape[:-1])
+        return torch.cat((marker.expand(*batch, 2), drive.expand(*batch, 1)), dim=-1)
 
 
 def main() -> None:

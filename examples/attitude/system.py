@@ -188,8 +188,12 @@ class Attitude(System):
         _check_last(drive, 3, "drive (Omega)")
         R = x[..., :9].unflatten(-1, (3, 3))
         g, m = self.directions(x.dtype, x.device)
+        rates = drive + x[..., 9:]
+        batch = torch.broadcast_shapes(R.shape[:-2], rates.shape[:-1])
         # R^T v as a row vector: v^T R
-        return torch.cat((g @ R, m @ R, (drive + x[..., 9:]).expand(*R.shape[:-2], 3)), dim=-1)
+        return torch.cat(
+            ((g @ R).expand(*batch, 3), (m @ R).expand(*batch, 3), rates.expand(*batch, 3)), dim=-1
+        )
 
     def apply_noise(self, measurements: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Noise-free measurements ``(*batch, 9)`` plus ``noise`` ``(*batch, 9)`` (already times
