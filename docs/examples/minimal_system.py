@@ -26,6 +26,7 @@ from manifold_nets.evaluation import evaluate
 from manifold_nets.generate import DatasetConfig, load_or_generate, make_dataset
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.system import System
+from manifold_nets.testing import check_system
 from manifold_nets.training import fit
 
 
@@ -79,6 +80,9 @@ def main() -> None:
     data.validate(system.group)  # finite, and every state on SO(2) (raises otherwise)
     print("states", tuple(data.states.shape), "measurements", tuple(data.measurements.shape),
           "inputs", tuple(data.inputs.shape))
+
+    # the contract every system keeps (one call in your own test): raises naming what is broken
+    check_system(system)
 
     # the measurement is the model: noise-free, y_{k+1} is the direction of R_{k+1}
     clean = make_dataset(system, num_sequences=64, length=50, sigma=0.0, seed=0)
