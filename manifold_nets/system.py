@@ -14,10 +14,24 @@ the velocity applied over that step). The noise ``nu`` is an explicit argument, 
 w)`` is the noise-free model ``h(x, w, 0)`` and its derivatives in ``x`` and ``nu`` are what an
 (error-state) Kalman filter needs.
 
-A subclass writes ``sample_initial_state``, ``sample_drive``, ``step``, ``measure`` and ``config``,
-and sets ``group``, ``measurement_dim``, ``input_dim``, ``drive_dim``, ``noise_dim``, ``dt`` and
-``name``. :meth:`System.simulate` then draws, in this order from one ``torch.Generator``, the
-initial states, the drive and the noise, rolls the dynamics out and measures, in float64.
+The measurement is written in two parts, and :meth:`System.measure` is derived from them once::
+
+    observe(x, w)               the noise-free model h(x, w, 0), (*batch, measurement_dim)
+    apply_noise(y, nu)          how the noise enters a noise-free measurement y
+    measure(x, w, nu)         = apply_noise(observe(x, w), nu);  measure(x, w) = observe(x, w)
+
+``apply_noise`` is also what noise-augmented training applies to noise-free data. The base class
+makes it additive, ``y + nu``, when ``noise_dim == measurement_dim``; a system whose noise is
+scaled per sensor or enters on a group (a rotation ``R exp([w]x)``) writes its own.
+
+A subclass writes ``sample_initial_state``, ``sample_drive``, ``step``, ``observe`` and ``config``
+(and ``apply_noise`` unless the noise is additive), and sets ``group``, ``measurement_dim``,
+``input_dim``, ``drive_dim``, ``noise_dim``, ``dt`` and ``name``. A system whose noisy
+measurement is not a function of the noise-free one may override ``measure`` instead of writing
+``observe``; it then has no ``apply_noise`` unless it writes one. :meth:`System.simulate` draws,
+in this order from one ``torch.Generator``, the initial states, the drives and the noise, rolls
+the dynamics out and measures, in float64. ``manifold_nets.testing.check_system(system)`` checks
+a subclass against this contract.
 
 Optional hooks for classical filters and baselines (:mod:`manifold_nets.ekf`,
 :mod:`manifold_nets.baselines`): ``measurement_residual`` (how a measurement is compared with a
@@ -36,7 +50,7 @@ from typing import Any
 
 import torch
 
-from groups import LieGroup, Product
+from groups import LieGroup
 
 from .data import TrajectoryDataset, check_positive_int, check_sigma
 from .progress import progress
@@ -112,14 +126,60 @@ class System(abc.ABC):
         """
 
     @abc.abstractmethod
+    def observe(self, x: torch.Tensor, drive: torch.Tensor) -> torch.Tensor:
+        """The noise-free measurement ``h(x, w, 0)``, ``(*batch, measurement_dim)``.
+
+        ``x`` ``(*batch, *element_shape)`` is the state the measurement is taken at
+        (``x_{k+1}``), ``drive`` ``(*batch, drive_dim)`` the drive of the step that led there
+        (``w_k``); batch dimensions broadcast, the dtype of ``x`` is kept. Differentiable.
+        """
+
+    def apply_noise(self, measurements: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
+        """Noise-free measurements ``(*batch, measurement_dim)`` with ``noise``
+        ``(*batch, noise_dim)`` (already times sigma) applied, ``(*batch, measurement_dim)``.
+
+        ``measure(x, w, noise)`` is ``apply_noise(observe(x, w), noise)``; noise-augmented
+        training calls it on noise-free data. Default: additive, ``measurements + noise``, when
+        ``noise_dim == measurement_dim``. Write it for any other noise (per-sensor scales, a
+        rotation perturbed on its group); it must be plain differentiable torch and give the
+        measurements back for zero noise.
+        """
+        who = type(self).__name__
+        if type(self).measure is not System.measure:
+            raise NotImplementedError(
+                f"{who} overrides measure(x, drive, noise) itself, so the base class cannot know "
+                f"how noise enters a noise-free measurement: write apply_noise(measurements, "
+                f"noise) (or write observe(x, drive) and apply_noise instead of measure)."
+            )
+        if self.noise_dim != self.measurement_dim:
+            raise NotImplementedError(
+                f"{who}: noise_dim={self.noise_dim} differs from measurement_dim="
+                f"{self.measurement_dim}, so the noise is not simply added: write "
+                f"apply_noise(measurements, noise) to say how the noise enters a noise-free "
+                f"measurement."
+            )
+        check_last_dim(who, noise, self.noise_dim, "noise")
+        return measurements + noise
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        # a subclass that writes measure itself (the older form) gets observe from it
+        if "measure" in cls.__dict__ and getattr(cls.observe, "__isabstractmethod__", False):
+            cls.observe = _observe_by_measure
+
+    # ------------------------------------------------------------------ derived, overridable
+
     def measure(
         self, x: torch.Tensor, drive: torch.Tensor, noise: torch.Tensor | None = None
     ) -> torch.Tensor:
-        """``y = h(x, w, nu)``, ``(*batch, measurement_dim)``.
+        """``y = h(x, w, nu)``, ``(*batch, measurement_dim)``: ``observe(x, drive)``, then
+        ``apply_noise(..., noise)`` unless ``noise`` is ``None``.
 
         ``x`` is the state the measurement is taken at (``x_{k+1}``), ``drive`` the drive of the
         step that led there (``w_k``), ``noise`` ``(*batch, noise_dim)`` or ``None`` for none.
         """
+        y = self.observe(x, drive)
+        return y if noise is None else self.apply_noise(y, noise)
 
     # ------------------------------------------------------------------ derived, overridable
 
@@ -221,8 +281,9 @@ class System(abc.ABC):
         """Per-factor embedding errors ``||pi(xhat) - pi(x)||``, each ``(N, T')``.
 
         ``estimates`` is ``(N, T+1, *element_shape)`` (compared with ``x_0 .. x_T``) or
-        ``(N, T, *element_shape)`` (compared with ``x_1 .. x_T``). For a :class:`groups.Product`
-        the keys are the factor names (``factor0``, ... when unnamed); otherwise ``x``. For SO(3)
+        ``(N, T, *element_shape)`` (compared with ``x_1 .. x_T``). The keys are the group's
+        ``factor_names`` (a Product's names, ``factor0``, ... when unnamed; ``x`` for a group
+        that is not a product), each factor's error read at its ``embedding_slice``. For SO(3)
         as rotation matrices this is the Frobenius norm ``||Rhat - R||_F`` of the paper's table.
         """
         states = data.states.to(dtype=estimates.dtype, device=estimates.device)
@@ -236,13 +297,10 @@ class System(abc.ABC):
             )
         diff = self.group.embed(estimates) - self.group.embed(states)
         g = self.group
-        if isinstance(g, Product):
-            names = g.names or tuple(f"factor{i}" for i in range(len(g.factors)))
-            return {
-                name: torch.linalg.vector_norm(diff[..., g.embedding_slice(i)], dim=-1)
-                for i, name in enumerate(names)
-            }
-        return {"x": torch.linalg.vector_norm(diff, dim=-1)}
+        return {
+            name: torch.linalg.vector_norm(diff[..., g.embedding_slice(i)], dim=-1)
+            for i, name in enumerate(g.factor_names)
+        }
 
     # ------------------------------------------------------------------ hooks for classical filters
 
@@ -310,3 +368,8 @@ class System(abc.ABC):
     def __repr__(self) -> str:
         args = ", ".join(f"{k}={v!r}" for k, v in self.config().items())
         return f"{type(self).__name__}({args})"
+
+
+def _observe_by_measure(self: System, x: torch.Tensor, drive: torch.Tensor) -> torch.Tensor:
+    """The noise-free measurement ``measure(x, drive)`` of a system that writes ``measure``."""
+    return self.measure(x, drive)

@@ -32,6 +32,7 @@ from manifold_nets import (
     load_or_generate,
     make_dataset,
 )
+from manifold_nets.testing import check_system
 
 
 class Turntable(System):
@@ -68,10 +69,11 @@ class Turntable(System):
         dt = self.dt if dt is None else dt
         return x @ self.group.exp(drive * dt)
 
-    def measure(self, x, drive, noise=None):
-        """``(cos theta, sin theta, omega) + n``; ``noise=None`` is the noise-free model."""
-        y = torch.cat((x[..., :, 0], drive), dim=-1)  # R e_1 = (cos theta, sin theta)
-        return y if noise is None else y + noise
+    def observe(self, x, drive):
+        """The noise-free ``(cos theta, sin theta, omega)``; the noise is added to it."""
+        marker = x[..., :, 0]  # R e_1 = (cos theta, sin theta)
+        batch = torch.broadcast_shapes(marker.shape[:-1], drive.shape[:-1])
+        return torch.cat((marker.expand(*batch, 2), drive.expand(*batch, 1)), dim=-1)
 
 
 def main() -> None:
@@ -83,6 +85,9 @@ def main() -> None:
     data.validate(system.group)  # finite, and every state on SO(2) (raises otherwise)
     print("states", tuple(data.states.shape), "measurements", tuple(data.measurements.shape),
           "inputs", tuple(data.inputs.shape))
+
+    # the contract every system keeps (one call in your own test): raises naming what is broken
+    check_system(system)
 
     # the measurement is the model: noise-free, y_{k+1} is the direction of R_{k+1}
     clean = make_dataset(system, num_sequences=64, length=50, sigma=0.0, seed=0)

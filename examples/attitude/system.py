@@ -181,24 +181,24 @@ class Attitude(System):
 
     # ------------------------------------------------------------------ measurements
 
-    def measure(
-        self, x: torch.Tensor, drive: torch.Tensor, noise: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """``(R^T g + s_g n1, R^T m + s_m n2, Omega + b + s_w n3)``, ``(*batch, 9)``."""
+    def observe(self, x: torch.Tensor, drive: torch.Tensor) -> torch.Tensor:
+        """The noise-free ``(R^T g, R^T m, Omega + b)``, ``(*batch, 9)``; ``measure(x, w, n)``
+        adds :meth:`apply_noise`'s ``(s_g n1, s_m n2, s_w n3)``."""
         self.group._check_element(x, "measure")
         _check_last(drive, 3, "drive (Omega)")
         R = x[..., :9].unflatten(-1, (3, 3))
         g, m = self.directions(x.dtype, x.device)
+        rates = drive + x[..., 9:]
+        batch = torch.broadcast_shapes(R.shape[:-2], rates.shape[:-1])
         # R^T v as a row vector: v^T R
-        y = torch.cat((g @ R, m @ R, (drive + x[..., 9:]).expand(*R.shape[:-2], 3)), dim=-1)
-        if noise is None:
-            return y
-        return self.apply_noise(y, noise)
+        return torch.cat(
+            ((g @ R).expand(*batch, 3), (m @ R).expand(*batch, 3), rates.expand(*batch, 3)), dim=-1
+        )
 
     def apply_noise(self, measurements: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Noise-free measurements ``(*batch, 9)`` plus ``noise`` ``(*batch, 9)`` (already times
-        sigma) at the per-sensor scales: the noise is additive, so ``measure(x, w, n)`` is
-        ``apply_noise(measure(x, w), n)``. Used by noise-augmented training."""
+        sigma) at the per-sensor scales: the noise is additive, and ``measure(x, w, n)`` is
+        ``apply_noise(observe(x, w), n)``. Used by noise-augmented training."""
         _check_last(noise, 9, "noise (n1, n2, n3)")
         scale = torch.tensor(
             [self.gravity_noise] * 3 + [self.magnetic_noise] * 3 + [self.gyro_noise] * 3,

@@ -252,21 +252,17 @@ class Planar(System):
 
     # ------------------------------------------------------------------ measurements
 
-    def measure(
-        self, x: torch.Tensor, drive: torch.Tensor, noise: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """``(p + s_p n1, v + b_v + s_v n2, omega + b_omega + s_w n3)``, ``(*batch, 4)``."""
+    def observe(self, x: torch.Tensor, drive: torch.Tensor) -> torch.Tensor:
+        """The noise-free ``(p, v + b_v, omega + b_omega)``, ``(*batch, 4)``; ``measure(x, w,
+        n)`` adds :meth:`apply_noise`'s ``(s_p n1, s_v n2, s_w n3)``."""
         self.group._check_element(x, "measure")
         _check_last(drive, 2, "drive (v, omega)")
-        y = torch.cat(torch.broadcast_tensors(self.position(x), drive + x[..., -2:]), dim=-1)
-        if noise is None:
-            return y
-        return self.apply_noise(y, noise)
+        return torch.cat(torch.broadcast_tensors(self.position(x), drive + x[..., -2:]), dim=-1)
 
     def apply_noise(self, measurements: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Noise-free measurements ``(*batch, 4)`` plus ``noise`` ``(*batch, 4)`` (already times
-        sigma) at the per-sensor scales: the noise is additive, so ``measure(x, w, n)`` is
-        ``apply_noise(measure(x, w), n)``. Used by noise-augmented training."""
+        sigma) at the per-sensor scales: the noise is additive, and ``measure(x, w, n)`` is
+        ``apply_noise(observe(x, w), n)``. Used by noise-augmented training."""
         _check_last(noise, 4, "noise (n1 (2), n2, n3)")
         scale = torch.tensor(
             [self.gps_noise] * 2 + [self.speed_noise, self.turn_rate_noise],

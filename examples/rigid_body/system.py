@@ -32,8 +32,9 @@ Measurement ``y_{k+1} = (vec R^m_{k+1}, p^m_{k+1}, Omega^m_k, v^m_k)`` in ``R^18
 ``R^m = R exp([w1]x)``, ``p^m = p + w2``, ``Omega^m = Omega + b_Omega + w3``,
 ``v^m = v + b_v + w4``, ``w_i ~ N(0, sigma^2 I_3)`` (``noise_dim = 12``): the velocity reading in
 ``y_{k+1}`` is the one applied over the step ``k -> k+1``. No control input (``input_dim = 0``).
-:meth:`RigidBody.apply_noise` applies ``(w1, w2, w3, w4)`` to noise-free measurements (what
-noise-augmented training uses); ``measure(x, w, n)`` is ``apply_noise(measure(x, w), n)``.
+:meth:`RigidBody.observe` is the noise-free measurement and :meth:`RigidBody.apply_noise` applies
+``(w1, w2, w3, w4)`` to it (what noise-augmented training uses); ``measure(x, w, n)`` is
+``apply_noise(observe(x, w), n)``.
 
 ``dt = 0.1`` s by default (the paper states none): the largest measured rate
 ``|Omega + b_Omega| <= sqrt(3) * 11`` then turns by at most 1.9 rad < pi in a step, so an
@@ -282,24 +283,23 @@ class RigidBody(System):
 
     # ------------------------------------------------------------------ measurements
 
-    def measure(
-        self, x: torch.Tensor, drive: torch.Tensor, noise: torch.Tensor | None = None
-    ) -> torch.Tensor:
-        """``(vec R exp([w1]x), p + w2, Omega + b_Omega + w3, v + b_v + w4)``, ``(*batch, 18)``.
+    def observe(self, x: torch.Tensor, drive: torch.Tensor) -> torch.Tensor:
+        """The noise-free ``(vec R, p, Omega + b_Omega, v + b_v)``, ``(*batch, 18)``.
 
-        With noise it is :meth:`apply_noise` of the noise-free measurement.
+        ``measure(x, w, noise)`` (derived by :class:`~manifold_nets.system.System`) is
+        :meth:`apply_noise` of it: ``(vec R exp([w1]x), p + w2, Omega + b_Omega + w3, v + b_v +
+        w4)``.
         """
         self.group._check_element(x, "measure")
         _check_last(drive, 6, "drive (Omega, v)")
-        y = _cat(self._pose_embedding(x), drive + self.biases(x))  # rates Omega + b_Omega, v + b_v
-        return y if noise is None else self.apply_noise(y, noise)
+        return _cat(self._pose_embedding(x), drive + self.biases(x))  # Omega + b_Omega, v + b_v
 
     def apply_noise(self, measurements: torch.Tensor, noise: torch.Tensor) -> torch.Tensor:
         """Noise-free measurements ``(*batch, 18)`` with ``noise = (w1, w2, w3, w4)``
         ``(*batch, 12)`` (already times sigma) applied: ``(vec(R^m exp([w1]x)), p^m + w2,
         Omega^m + w3, v^m + w4)``, ``(*batch, 18)`` (batch dimensions broadcast, dtypes promote).
 
-        ``measure(x, w, n)`` is ``apply_noise(measure(x, w), n)``. Used by noise-augmented
+        ``measure(x, w, n)`` is ``apply_noise(observe(x, w), n)``. Used by noise-augmented
         training (``train.noise.sigma_max > 0``).
         """
         _check_last(measurements, 18, "measurements")
