@@ -32,6 +32,15 @@ class MeasurementNoise:
                 "measurement-noise augmentation needs a system with apply_noise(measurements, "
                 f"noise) and noise_dim; {type(system).__name__} has none."
             )
+        try:  # a system that cannot apply noise says so now, not at the first noisy batch
+            system.apply_noise(
+                torch.zeros(1, 1, system.measurement_dim, dtype=torch.float64),
+                torch.zeros(1, 1, system.noise_dim, dtype=torch.float64),
+            )
+        except NotImplementedError as err:
+            raise ValueError(
+                f"measurement-noise augmentation needs {type(system).__name__}.apply_noise: {err}"
+            ) from None
         self.system, self.sigma_min, self.sigma_max = system, lo, hi
 
     def __repr__(self) -> str:

@@ -53,6 +53,7 @@ import torch
 from groups import LieGroup
 
 from .data import TrajectoryDataset, check_positive_int, check_sigma
+from .losses import factor_errors
 from .progress import progress
 
 __all__ = ["System", "check_last_dim", "check_number"]
@@ -283,8 +284,8 @@ class System(abc.ABC):
         ``estimates`` is ``(N, T+1, *element_shape)`` (compared with ``x_0 .. x_T``) or
         ``(N, T, *element_shape)`` (compared with ``x_1 .. x_T``). The keys are the group's
         ``factor_names`` (a Product's names, ``factor0``, ... when unnamed; ``x`` for a group
-        that is not a product), each factor's error read at its ``embedding_slice``. For SO(3)
-        as rotation matrices this is the Frobenius norm ``||Rhat - R||_F`` of the paper's table.
+        that is not a product): :func:`manifold_nets.losses.factor_errors`. For SO(3) as
+        rotation matrices this is the Frobenius norm ``||Rhat - R||_F`` of the paper's table.
         """
         states = data.states.to(dtype=estimates.dtype, device=estimates.device)
         if estimates.shape[1] == states.shape[1] - 1:
@@ -295,12 +296,7 @@ class System(abc.ABC):
                 f"estimates must be (N, T+1, ...) or (N, T, ...) = {tuple(data.states.shape)} "
                 f"or {short}; got {tuple(estimates.shape)}."
             )
-        diff = self.group.embed(estimates) - self.group.embed(states)
-        g = self.group
-        return {
-            name: torch.linalg.vector_norm(diff[..., g.embedding_slice(i)], dim=-1)
-            for i, name in enumerate(g.factor_names)
-        }
+        return factor_errors(self.group, estimates, states)
 
     # ------------------------------------------------------------------ hooks for classical filters
 

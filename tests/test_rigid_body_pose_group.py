@@ -13,7 +13,7 @@ from examples.rigid_body.system import POSE_GROUPS
 from groups import SE3, SO3
 from manifold_nets.datasets import dataset_path
 from manifold_nets.observer import ResidualObserver
-from manifold_nets import MeasurementNoise, TrainSettings
+from manifold_nets import MeasurementNoise, ObserverInputs, TrainSettings
 from manifold_nets.training import fit
 
 F64 = torch.float64
@@ -180,7 +180,7 @@ def test_observer_on_se3_stays_on_the_group():
     torch.manual_seed(0)
     obs = ResidualObserver(
         POSE.group, 18, hidden_size=8, num_layers=1,
-        update={"b_omega": "absolute", "b_v": "absolute"}, innovation={"T": (0, 12)},
+        update={"b_omega": "absolute", "b_v": "absolute"}, inputs=ObserverInputs({"T": (0, 12)}),
     )  # fmt: skip
     assert obs.core.input_size == 18 + 18 + 6  # embed(xhat), y, log(That^-1 T^m)
     with torch.no_grad():
