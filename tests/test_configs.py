@@ -32,23 +32,8 @@ def _compose(*overrides: str):
 
 
 def _tiny(cache: Path, *more: str) -> list[str]:
-    return [
-        "experiment=default",
-        f"dataset.cache_dir={cache}",
-        "dataset.num_sequences=40",
-        "dataset.length=8",
-        "dataset.progress=false",
-        "model.hidden_size=8",
-        "model.num_layers=1",
-        "train.epochs=1",
-        "train.batch_size=16",
-        "train.progress=false",
-        "train.threads=1",
-        "eval.num_sequences=4",
-        "eval.length=16",
-        "eval.skip_steps=2",
-        *more,
-    ]
+    """The tiny run of the default experiment (``configs/debug/tiny.yaml``), its data in ``cache``."""
+    return ["experiment=default", "debug=tiny", f"dataset.cache_dir={cache}", *more]
 
 
 def test_there_are_experiments():
@@ -62,6 +47,72 @@ def test_every_experiment_composes_into_the_schema(name):
     assert isinstance(obj, RunConfig)
     assert cfg.system._target_ and cfg.name == name
     assert cfg.model.hidden_size > 0 and cfg.eval.sigmas
+
+
+GROUPS = ("system", "dataset", "model", "train", "eval")
+
+
+def _defaults(group: str, name: str) -> list:
+    return OmegaConf.to_container(OmegaConf.load(CONFIGS / group / f"{name}.yaml")).get(
+        "defaults", []
+    )
+
+
+def _parents(group: str, name: str) -> list[str]:
+    """The files of its own group that ``group/name.yaml`` merges in (``- other`` in defaults)."""
+    parents = []
+    for entry in _defaults(group, name):
+        if isinstance(entry, dict):  # `/group: file` names a file of another group, or this one
+            ((key, value),) = entry.items()
+            if key.startswith(("override ", "optional ")) or key.lstrip("/") != group:
+                continue
+            entry = str(value)
+        entry = entry.removeprefix(f"/{group}/")
+        if entry != "_self_" and (CONFIGS / group / f"{entry}.yaml").is_file():
+            parents.append(entry)
+    return parents
+
+
+def _inheritance_depth(group: str, name: str, seen: tuple = ()) -> int:
+    assert name not in seen, f"{group}/{name}.yaml inherits from itself via {seen}"
+    parents = _parents(group, name)
+    return 1 + max(_inheritance_depth(group, p, (*seen, name)) for p in parents) if parents else 0
+
+
+@pytest.mark.parametrize(
+    "group, name",
+    sorted((p.parent.name, p.stem) for p in CONFIGS.glob("*/*.yaml")),
+    ids=lambda x: x,
+)
+def test_no_config_inherits_from_another_of_its_group_more_than_one_level(group, name):
+    # flat like lightning-hydra-template: what a run uses is read off one or two files
+    assert _inheritance_depth(group, name) <= 1, (group, name, _parents(group, name))
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_every_experiment_names_its_group_files(name):
+    named = {
+        k.removeprefix("override /")
+        for entry in _defaults("experiment", name)
+        if isinstance(entry, dict)
+        for k in entry
+    }
+    assert set(GROUPS) <= named, f"experiment/{name}.yaml does not name {set(GROUPS) - named}"
+
+
+@pytest.mark.parametrize("name", EXPERIMENTS)
+def test_debug_tiny_composes_with_every_experiment(name):
+    full = _compose(f"experiment={name}")
+    cfg = _compose(f"experiment={name}", "debug=tiny")
+    assert isinstance(OmegaConf.to_object(cfg), RunConfig) and cfg.name == name
+    # the toy sizes win over the experiment's (debug comes after it in train.yaml's defaults)...
+    assert (cfg.dataset.num_sequences, cfg.dataset.length) == (40, 8)
+    assert (cfg.model.hidden_size, cfg.model.num_layers, cfg.train.epochs) == (8, 1, 1)
+    assert list(cfg.eval.sigmas) == [0.1] and (cfg.eval.num_sequences, cfg.eval.length) == (4, 16)
+    assert cfg.train.device == "cpu" and not cfg.train.compile
+    # ...and everything else is the experiment's
+    tiny = OmegaConf.load(CONFIGS / "debug" / "tiny.yaml")
+    assert OmegaConf.to_container(cfg) == OmegaConf.to_container(OmegaConf.merge(full, tiny))
 
 
 def test_paper_experiment_has_the_paper_sizes():
