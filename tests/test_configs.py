@@ -213,7 +213,7 @@ def test_the_whole_command_on_tiny_sizes(tmp_path):
     again = run(_compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'run'}")), tmp_path / "ev")
     assert again["table"][0]["R est"] == pytest.approx(row["R est"], rel=1e-6)
     other = run(
-        _compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'run'}", "eval.sigma=0.3")),
+        _compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'run'}", "eval.sigmas=[0.3]")),
         tmp_path / "ev3",
     )
     assert other["table"][0]["sigma"] == 0.3 and other["table"][0]["R meas"] > row["R meas"]
