@@ -32,7 +32,7 @@ def _compose(*overrides: str):
 
 
 def _tiny(cache: Path, *more: str) -> list[str]:
-    """The tiny run of the default experiment (``configs/debug/tiny.yaml``), its data in ``cache``."""
+    """The tiny run of experiment=default (``configs/debug/tiny.yaml``), its data in ``cache``."""
     return ["experiment=default", "debug=tiny", f"dataset.cache_dir={cache}", *more]
 
 
