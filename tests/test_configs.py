@@ -159,6 +159,33 @@ def test_bad_schedules_fail_before_any_work(tmp_path, override, match):
     assert not (tmp_path / "data").exists()  # no data generated either
 
 
+@pytest.mark.parametrize(
+    "dataset, evaluation", [("small_inference", "small"), ("paper_inference", "paper")]
+)
+def test_the_generate_command_writes_the_inference_sets_of_eval(dataset, evaluation):
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        d = compose("generate", overrides=[f"dataset={dataset}"]).dataset
+    e = _compose(f"eval={evaluation}").eval
+    assert (d.num_sequences, d.length, d.seed) == (e.num_sequences, e.length, e.seed)
+    assert dict(d.splits) == {"inference": 1.0} and d.sigma == e.sigmas[0]
+
+
+def test_the_train_command_reads_the_file_of_dataset_small_inference(tmp_path):
+    from hydra.utils import instantiate
+
+    from manifold_nets.generate import load_or_generate
+    from manifold_nets.train import load_inference_data
+
+    with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
+        gen = compose("generate", overrides=["dataset=small_inference", "dataset.progress=false"])
+    system = instantiate(gen.system)
+    written = load_or_generate(system, gen.dataset, cache_dir=tmp_path)["inference"]
+    cfg = _compose("experiment=default", f"dataset.cache_dir={tmp_path}")  # eval=small
+    read = load_inference_data(system, cfg, cfg.eval.sigmas[0])
+    assert read.meta["path"] == written.meta["path"] and read == written
+    assert len(list(tmp_path.iterdir())) == 1  # read from the cache, nothing generated
+
+
 def test_run_folders_cannot_collide():
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         cfg = compose("train", overrides=["experiment=default"], return_hydra_config=True)
