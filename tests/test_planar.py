@@ -268,10 +268,7 @@ def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
     from manifold_nets.cli.train import run
 
     tiny = [
-        "experiment=planar", f"dataset.cache_dir={tmp_path / 'data'}", "dataset.num_sequences=40",
-        "dataset.length=8", "dataset.progress=false", "model.hidden_size=8", "model.num_layers=1",
-        "train.epochs=1", "train.batch_size=16", "train.progress=false", "train.threads=1",
-        "eval.num_sequences=4", "eval.length=16", "eval.skip_steps=2", "eval.sigmas=[0.1]",
+        "experiment=planar", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}",
         "eval.plots=false",
     ]
     with initialize_config_dir(config_dir=CONFIGS, version_base="1.3"):
