@@ -178,7 +178,7 @@ class MethodConfig:
 
     Every method runs through the same evaluation (the same inference sets, metrics, table and
     figures), so runs with different ``method=`` compare row by row
-    (``python -m manifold_nets.compare``).
+    (``python -m manifold_nets.cli.compare``).
     """
 
     #: ``learned``: train the observer (or load ``eval.checkpoint``) and evaluate it;

@@ -343,7 +343,7 @@ class System(abc.ABC):
 
         A factory is called as ``factory(system, sigma=sigma, **params)`` (``sigma`` only when it
         takes one: the noise level of the data, which a model-based filter is told) and returns a
-        :class:`manifold_nets.baselines.Estimator`. ``python -m manifold_nets.train method=<name>``
+        :class:`manifold_nets.baselines.Estimator`. ``python -m manifold_nets.cli.train method=<name>``
         evaluates it in place of the learned observer. Default: ``raw`` and ``dead_reckoning``
         (:mod:`manifold_nets.baselines`; they need ``state_from_measurement`` and
         ``drive_from_measurement``). A system with filters of its own adds them (the rigid body:

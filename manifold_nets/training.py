@@ -92,7 +92,9 @@ def check_schedule(schedule: str, lr: float, lr_min: float = 0.0) -> None:
 
 
 def check_settings(settings: TrainSettings) -> TrainSettings:
-    """Raises ``ValueError`` naming the setting unless ``settings`` can train; returns them."""
+    """Raises ``ValueError`` naming the setting unless ``settings`` can train; returns them.
+
+    Every message starts with the name of the setting (``lr must ...``)."""
     if not isinstance(settings, TrainSettings):
         raise TypeError(
             f"settings must be a manifold_nets.TrainSettings, got {type(settings).__name__}."

@@ -48,7 +48,7 @@ def test_config_composes_and_generates_a_tiny_dataset(tmp_path):
     assert isinstance(system, Attitude)
     assert system.config() == Attitude().config()  # the yaml restates the defaults
     assert cfg.dataset.name == "attitude_small" and cfg.dataset.inference.length == 200
-    dcfg = DatasetConfig(**{**dict(cfg.dataset), "inference": None})
+    dcfg = DatasetConfig(**dict(cfg.dataset))
     dcfg.num_sequences, dcfg.length, dcfg.cache_dir, dcfg.progress = 10, 6, str(tmp_path), False
     parts = load_or_generate(system, dcfg)
     assert sorted(parts) == ["test", "train", "val"]

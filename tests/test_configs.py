@@ -173,15 +173,15 @@ def test_the_generate_command_writes_the_inference_sets_of_eval(dataset, evaluat
 def test_the_train_command_reads_the_file_of_dataset_small_inference(tmp_path):
     from hydra.utils import instantiate
 
-    from manifold_nets.generate import load_or_generate
-    from manifold_nets.train import load_inference_data
+    from manifold_nets.datasets import inference_data, load_or_generate
 
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         gen = compose("generate", overrides=["dataset=small_inference", "dataset.progress=false"])
     system = instantiate(gen.system)
     written = load_or_generate(system, gen.dataset, cache_dir=tmp_path)["inference"]
     cfg = _compose("experiment=default", f"dataset.cache_dir={tmp_path}")  # eval=small
-    read = load_inference_data(system, cfg, cfg.eval.sigmas[0])
+    dataset = OmegaConf.to_object(cfg.dataset)
+    read = inference_data(system, dataset, cfg.eval, cfg.eval.sigmas[0], cache_dir=tmp_path)
     assert read.meta["path"] == written.meta["path"] and read == written
     assert len(list(tmp_path.iterdir())) == 1  # read from the cache, nothing generated
 
@@ -205,14 +205,9 @@ def test_both_commands_take_their_folders_from_configs_hydra():
     assert OmegaConf.to_container(gen.hydra.sweep)["subdir"] == "${hydra.job.num}"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="the generate command does not import manifold_nets.train_config, which registers "
-    "the mn_run_id resolver that configs/hydra/default.yaml names",
-)
 def test_the_generate_command_writes_into_its_own_run_folder(tmp_path):
     cmd = [
-        sys.executable, "-m", "manifold_nets.generate", f"dataset.cache_dir={tmp_path / 'data'}",
+        sys.executable, "-m", "manifold_nets.cli.generate", f"dataset.cache_dir={tmp_path / 'data'}",
         "dataset.num_sequences=10", "dataset.length=4", "dataset.progress=false",
     ]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -265,7 +260,7 @@ def test_multirun_and_sweep_table(tmp_path):
     cmd = [
         sys.executable,
         "-m",
-        "manifold_nets.train",
+        "manifold_nets.cli.train",
         "-m",
         *_tiny(tmp_path / "data"),
         "seed=0,1",

@@ -1,5 +1,5 @@
 """Datasets from configs: hydra composition and overrides, the cache keyed by the config hash,
-validation before work, and the command ``python -m manifold_nets.generate``."""
+validation before work, and the command ``python -m manifold_nets.cli.generate``."""
 
 from __future__ import annotations
 

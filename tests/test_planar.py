@@ -56,7 +56,7 @@ def test_config_composes_and_generates_a_tiny_dataset(tmp_path):
     assert isinstance(system, Planar)
     assert system.config() == Planar().config()  # the yaml restates the defaults
     assert cfg.dataset.name == "planar_small"
-    dcfg = DatasetConfig(**{**dict(cfg.dataset), "inference": None})
+    dcfg = DatasetConfig(**dict(cfg.dataset))
     dcfg.num_sequences, dcfg.length, dcfg.cache_dir, dcfg.progress = 10, 6, str(tmp_path), False
     parts = load_or_generate(system, dcfg)
     train = parts["train"]

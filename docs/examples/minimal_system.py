@@ -99,7 +99,7 @@ def main() -> None:
     error = system.group.distance(SO2().exp(angle[..., None]), data.states[:, 1:])
     print(f"raw angle error at sigma 0.1: {error.mean():.4f} rad")
 
-    # cached files, as `python -m manifold_nets.generate` writes them
+    # cached files, as `python -m manifold_nets.cli.generate` writes them
     with tempfile.TemporaryDirectory() as cache:
         config = DatasetConfig(num_sequences=100, length=20, sigma=0.1, cache_dir=cache,
                                progress=False)

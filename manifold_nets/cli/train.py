@@ -72,8 +72,8 @@ def _check_before_work(cfg: DictConfig) -> None:
     check_sigmas(cfg.eval.sigmas)
     try:
         check_settings(OmegaConf.to_object(cfg.train))
-    except ValueError as err:
-        raise ValueError(f"train: {err}") from None
+    except ValueError as err:  # the library names its parameter first: name the config key
+        raise ValueError(f"train.{err}") from None
     if cfg.train.init_from and cfg.train.resume:
         raise ValueError(
             f"train.init_from={cfg.train.init_from!r} and train.resume={cfg.train.resume!r}: "
