@@ -75,37 +75,37 @@ class PositiveAffine1D(MatrixLieGroup):
     embedding_dim = 4
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
-        self._check_tangent(v, "hat")
+        self.check_tangent(v, "hat")
         o = torch.zeros_like(v[..., 0])
         return torch.stack((v[..., 0], v[..., 1], o, o), -1).unflatten(-1, (2, 2))
 
     def vee(self, m: torch.Tensor) -> torch.Tensor:
-        self._check_element(m, "vee")
+        self.check_element(m, "vee")
         return m[..., 0, :]
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         alpha, beta = v.unbind(-1)
         a, b = torch.exp(alpha), beta * _expm1_over_x(alpha)
         o = torch.zeros_like(a)
         return torch.stack((a, b, o, torch.ones_like(a)), -1).unflatten(-1, (2, 2))
 
     def log(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         alpha = torch.log(x[..., 0, 0])
         return torch.stack((alpha, x[..., 0, 1] / _expm1_over_x(alpha)), -1)
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return x.flatten(-2)
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
-        self._check_shape(z, (4,), "unembed", "an embedded element")
+        self.check_shape(z, (4,), "unembed", "an embedded element")
         return z.unflatten(-1, (2, 2))
 
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """``|x_10| + |x_11 - 1| + max(-x_00, 0)``: the bottom row and the sign of ``a``."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         return x[..., 1, 0].abs() + (x[..., 1, 1] - 1).abs() + torch.relu(-x[..., 0, 0])
 
 

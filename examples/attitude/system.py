@@ -171,7 +171,7 @@ class Attitude(System):
 
         Exact for a rate held over the step; differentiable (an EKF can linearise it).
         """
-        self.group._check_element(x, "step")
+        self.group.check_element(x, "step")
         _check_last(drive, 3, "drive (Omega)")
         dt = self.dt if dt is None else dt
         R = x[..., :9].unflatten(-1, (3, 3))
@@ -185,7 +185,7 @@ class Attitude(System):
         self, x: torch.Tensor, drive: torch.Tensor, noise: torch.Tensor | None = None
     ) -> torch.Tensor:
         """``(R^T g + s_g n1, R^T m + s_m n2, Omega + b + s_w n3)``, ``(*batch, 9)``."""
-        self.group._check_element(x, "measure")
+        self.group.check_element(x, "measure")
         _check_last(drive, 3, "drive (Omega)")
         R = x[..., :9].unflatten(-1, (3, 3))
         g, m = self.directions(x.dtype, x.device)

@@ -240,7 +240,7 @@ class Planar(System):
 
         With ``exp((v dt, 0, omega dt)) = [[R_inc, t_inc], [0, 1]]``: ``R' = R R_inc``,
         ``p' = p + R t_inc`` (the same product for both layouts)."""
-        self.group._check_element(x, "step")
+        self.group.check_element(x, "step")
         _check_last(drive, 2, "drive (v, omega)")
         dt = self.dt if dt is None else dt
         v, w = drive.unbind(-1)
@@ -256,7 +256,7 @@ class Planar(System):
         self, x: torch.Tensor, drive: torch.Tensor, noise: torch.Tensor | None = None
     ) -> torch.Tensor:
         """``(p + s_p n1, v + b_v + s_v n2, omega + b_omega + s_w n3)``, ``(*batch, 4)``."""
-        self.group._check_element(x, "measure")
+        self.group.check_element(x, "measure")
         _check_last(drive, 2, "drive (v, omega)")
         y = torch.cat(torch.broadcast_tensors(self.position(x), drive + x[..., -2:]), dim=-1)
         if noise is None:
