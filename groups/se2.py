@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _numerics as nx
+from . import numerics as nx
 from .base import MatrixLieGroup
 from .so2 import SO2, so2_membership_error
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _numerics as nx
+from . import numerics as nx
 from .base import MatrixLieGroup
 from .so3 import SO3, _quadratic_form, left_jacobian_inverse, skew, unskew
 

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _numerics as nx
+from . import numerics as nx
 from .base import MatrixLieGroup
 
 __all__ = ["SO3", "skew", "unskew", "left_jacobian", "left_jacobian_inverse"]
