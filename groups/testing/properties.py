@@ -217,6 +217,30 @@ def adjoint(c: Case, data) -> None:
             scale=magnitude(ad_x, 2) * magnitude(ad_xi, 2), inputs={"x": x})
 
 
+def _flat_embedding(c: Case, x: torch.Tensor, z: torch.Tensor) -> None:
+    """A group declaring ``embedding_is_flat`` embeds ``x`` as ``x`` flattened, exactly."""
+    G = c.group
+    numel = math.prod(G.element_shape)
+    if G.embedding_dim != numel:
+        c.fail(
+            f"embedding_is_flat is True, but embedding_dim {G.embedding_dim} is not the "
+            f"{numel} entries of an element of shape {tuple(G.element_shape)}; declare "
+            f"embedding_is_flat = False, or embed as x flattened"
+        )
+    flat = x.reshape(*G.batch_shape(x), numel)
+    differs = (z != flat).reshape(-1, numel).any(-1)
+    if differs.any():
+        first = int(differs.nonzero()[0, 0])
+        index = torch.unravel_index(torch.tensor(first), c.batch_shape) if c.batch_shape else ()
+        index = tuple(int(j) for j in index)
+        c.fail(
+            f"embedding_is_flat is True, but embed(x) is not x flattened row-major in "
+            f"{int(differs.sum())} of {differs.numel()} element(s); the first at batch index "
+            f"{index}: x = {format_tensor(flat.reshape(-1, numel)[first])}, "
+            f"embed(x) = {format_tensor(z.reshape(-1, numel)[first])}"
+        )
+
+
 def _embedding_rejects(c: Case, data, z: torch.Tensor) -> None:
     """``from_embedding`` raises GroupMembershipError for NaN and (where the image is a proper
     submanifold, ``embedding_dim > tangent_dim``) for a random push off the group."""
@@ -245,11 +269,14 @@ def _embedding_rejects(c: Case, data, z: torch.Tensor) -> None:
 
 
 def embedding(c: Case, data) -> None:
-    """The embedding round trips, and ``from_embedding`` rejects what is off the group."""
+    """The embedding round trips, ``from_embedding`` rejects what is off the group, and a group
+    declaring ``embedding_is_flat`` embeds an element as itself flattened."""
     G, ne = c.group, len(c.group.element_shape)
     x = c.x(data, "x")
     z = G.embed(x)
     c.shape("embed(x)", z, (G.embedding_dim,))
+    if G.embedding_is_flat:
+        _flat_embedding(c, x, z)
     c.close("unembed(embed(x)) == x", G.unembed(z), x, trailing=ne, inputs={"x": x})
     try:
         back = G.from_embedding(z)

@@ -268,7 +268,9 @@ def check_embedding(
     grid: bool = True,
 ) -> CheckResult:
     """``unembed(embed(x)) = x``, ``from_embedding(embed(x)) = x``, and ``from_embedding`` raises
-    GroupMembershipError for NaN and (if ``embedding_dim > tangent_dim``) off the group."""
+    GroupMembershipError for NaN and (if ``embedding_dim > tangent_dim``) off the group. If the
+    group declares ``embedding_is_flat``, ``embedding_dim`` is the number of entries of an
+    element and ``embed(x)`` is ``x`` flattened row-major, exactly."""
     return run_property(
         "embedding", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
         magnitudes=magnitudes, derandomize=derandomize, grid=grid,
