@@ -28,6 +28,9 @@ class ComplexSO2(LieGroup):
     embedding_dim = 2
     # The whole tangent vector is a rotation angle: groups.testing puts 0, 1e-8, ..., pi there.
     angle_slices = (slice(0, 1),)
+    # embed(x) is x itself (flattened): declared, so code reading the state can skip embedding
+    # it; groups.testing checks the declaration.
+    embedding_is_flat = True
 
     # -- the minimum API ---------------------------------------------------------------------
 
