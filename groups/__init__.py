@@ -3,7 +3,8 @@
 Shipped groups: :class:`SO2`, :class:`SO3`, :class:`SE2`, :class:`SE3`, :class:`SE23` (extended
 poses), :class:`Euclidean` (R^n) and :class:`Product` of any of them. Define your own by
 subclassing :class:`LieGroup` (or :class:`MatrixLieGroup`) and check it with
-``groups.testing.check_group``.
+``groups.testing.check_group``. Every group is also a product of named factors (the factors
+view: ``factor_names``, ``index``, ``tangent_slice``, ...; a non-product group is one factor "x").
 """
 
 from .base import GroupMembershipError, LieGroup, MatrixLieGroup

@@ -15,6 +15,9 @@ The minimum a subclass writes (manif's "minimum API"):
 Derived once here, overridable for speed: ``rplus``, ``rminus``, ``between``, ``adjoint``,
 ``distance``, ``random``, ``check_member``, ``from_embedding``.
 
+Input validation for authors of a group or a system: ``check_element``, ``check_tangent`` and
+``check_shape`` raise ``TypeError`` / ``ValueError`` naming the expected shape and dtype.
+
 The factors view: every group is a product of named factors. A :class:`~groups.Product` has its
 own; any other group is its single factor named ``"x"``. ``factors``, ``factor_names``,
 ``index``, ``factor``, ``element_slice``, ``tangent_slice`` and ``embedding_slice`` answer
@@ -136,7 +139,7 @@ class LieGroup(abc.ABC):
         ``v -> log(x · exp(v) · x^-1)`` at ``v = 0`` with forward-mode autograd, one column per
         tangent direction; subclasses override it with a closed form.
         """
-        self._check_element(x, "adjoint")
+        self.check_element(x, "adjoint")
         batch = x.shape[: x.dim() - len(self.element_shape)]
         x_inv = self.inverse(x)
 
@@ -169,7 +172,7 @@ class LieGroup(abc.ABC):
 
         ``atol`` defaults to 1e-4 for float32 and 1e-9 for float64. Returns ``x`` unchanged.
         """
-        self._check_element(x, "check_member")
+        self.check_element(x, "check_member")
         if not bool(torch.isfinite(x).all()):
             raise GroupMembershipError(
                 f"{self.name}: the element holds NaN or Inf; a group element must be finite."
@@ -188,7 +191,7 @@ class LieGroup(abc.ABC):
 
     def from_embedding(self, z: torch.Tensor, atol: float | None = None) -> torch.Tensor:
         """The inverse of ``embed``, checked: raises :class:`GroupMembershipError` off the group."""
-        self._check_shape(z, (self.embedding_dim,), "from_embedding", "an embedded element")
+        self.check_shape(z, (self.embedding_dim,), "from_embedding", "an embedded element")
         return self.check_member(self.unembed(z), atol=atol)
 
     # ------------------------------------------------------------------ the factors view
@@ -261,9 +264,20 @@ class LieGroup(abc.ABC):
         """The batch shape of an element ``x``."""
         return x.shape[: x.dim() - len(self.element_shape)]
 
-    def _check_shape(
+    # ------------------------------------------------------------------ input validation
+    # Public for authors of a group (call them first in every method that takes a tensor) and of
+    # a system (``self.group.check_element(x, "step")``): they raise the library's clear errors.
+
+    def check_shape(
         self, t: torch.Tensor, trailing: tuple[int, ...], where: str, what: str
     ) -> None:
+        """Raises unless ``t`` is a floating-point tensor of shape ``(*batch, *trailing)``.
+
+        ``where`` names the method being called and ``what`` the argument, for the message, e.g.
+        ``check_shape(z, (4,), "unembed", "an embedded element")``. Raises ``TypeError`` for a
+        non-tensor or a non-floating dtype (asking for float32 or float64), ``ValueError`` for a
+        wrong trailing shape (naming the expected ``(*batch, ...)`` and the shape received).
+        """
         if not isinstance(t, torch.Tensor):
             raise TypeError(
                 f"{self.name}.{where} expects {what} as a torch.Tensor, got {type(t).__name__}."
@@ -280,11 +294,23 @@ class LieGroup(abc.ABC):
                 f"{self.name}.{where} expects {what} of shape ({want}), got {tuple(t.shape)}."
             )
 
-    def _check_tangent(self, v: torch.Tensor, where: str) -> None:
-        self._check_shape(v, (self.tangent_dim,), where, "a tangent vector")
+    def check_tangent(self, v: torch.Tensor, where: str) -> None:
+        """Raises unless ``v`` is a tangent vector ``(*batch, tangent_dim)``.
 
-    def _check_element(self, x: torch.Tensor, where: str) -> None:
-        self._check_shape(x, tuple(self.element_shape), where, "a group element")
+        Errors as :meth:`check_shape`; ``where`` names the calling method
+        (``check_tangent(v, "exp")``). Checks shape and dtype only; any real vector of that shape
+        is a tangent vector.
+        """
+        self.check_shape(v, (self.tangent_dim,), where, "a tangent vector")
+
+    def check_element(self, x: torch.Tensor, where: str) -> None:
+        """Raises unless ``x`` has an element's shape ``(*batch, *element_shape)``, as
+        :meth:`check_shape` (``TypeError`` / ``ValueError``).
+
+        ``where`` names the calling method (``check_element(x, "log")``). Checks shape and dtype
+        only, cheaply, so every operation can call it; :meth:`check_member` is the membership test.
+        """
+        self.check_shape(x, tuple(self.element_shape), where, "a group element")
 
 
 class MatrixLieGroup(LieGroup):
@@ -315,16 +341,16 @@ class MatrixLieGroup(LieGroup):
         return eye.expand(*batch_shape, self.matrix_dim, self.matrix_dim).clone()
 
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "compose")
-        self._check_element(y, "compose")
+        self.check_element(x, "compose")
+        self.check_element(y, "compose")
         return x @ y
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "inverse")
+        self.check_element(x, "inverse")
         return torch.linalg.inv(x)
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "adjoint")
+        self.check_element(x, "adjoint")
         eye = torch.eye(self.tangent_dim, dtype=x.dtype, device=x.device)
         basis = self.hat(eye)  # (k, d, d)
         conj = x.unsqueeze(-3) @ basis @ self.inverse(x).unsqueeze(-3)  # (*batch, k, d, d)

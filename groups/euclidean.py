@@ -33,42 +33,42 @@ class Euclidean(LieGroup):
         return torch.zeros(*batch_shape, self.n, dtype=dtype, device=device)
 
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "compose")
-        self._check_element(y, "compose")
+        self.check_element(x, "compose")
+        self.check_element(y, "compose")
         return x + y
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "inverse")
+        self.check_element(x, "inverse")
         return -x
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         return v.clone()
 
     def log(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         return x.clone()
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return x
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
-        self._check_shape(z, (self.n,), "unembed", "an embedded element")
+        self.check_shape(z, (self.n,), "unembed", "an embedded element")
         return z
 
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """0 for every finite vector (NaN where the input is not finite)."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         return (x - x).abs().sum(-1)
 
     def rplus(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "rplus")
-        self._check_tangent(v, "rplus")
+        self.check_element(x, "rplus")
+        self.check_tangent(v, "rplus")
         return x + v
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """The identity: R^n is abelian."""
-        self._check_element(x, "adjoint")
+        self.check_element(x, "adjoint")
         eye = torch.eye(self.n, dtype=x.dtype, device=x.device)
         return eye.expand(*x.shape[:-1], self.n, self.n)

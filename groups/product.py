@@ -89,7 +89,7 @@ class Product(LieGroup):
 
     def split(self, x: torch.Tensor) -> list[torch.Tensor]:
         """The factor elements of ``x``, each ``(*batch, *factor.element_shape)``."""
-        self._check_element(x, "split")
+        self.check_element(x, "split")
         return [x[..., s].unflatten(-1, f.element_shape) for f, s in zip(self.factors, self._el)]
 
     def join(self, parts: Sequence[torch.Tensor]) -> torch.Tensor:
@@ -98,22 +98,22 @@ class Product(LieGroup):
             raise ValueError(f"{self!r}.join needs {len(self.factors)} parts, got {len(parts)}.")
         flat = []
         for f, p in zip(self.factors, parts):
-            f._check_element(p, "join")
+            f.check_element(p, "join")
             flat.append(p.flatten(p.dim() - len(f.element_shape)) if f.element_shape else p)
         return _cat(flat)
 
     def get(self, x: torch.Tensor, key: int | str) -> torch.Tensor:
         """Factor ``key`` of the element ``x``."""
         i = self.index(key)
-        self._check_element(x, "get")
+        self.check_element(x, "get")
         return x[..., self._el[i]].unflatten(-1, self.factors[i].element_shape)
 
     def split_tangent(self, v: torch.Tensor) -> list[torch.Tensor]:
-        self._check_tangent(v, "split_tangent")
+        self.check_tangent(v, "split_tangent")
         return [v[..., s] for s in self._tan]
 
     def split_embedding(self, z: torch.Tensor) -> list[torch.Tensor]:
-        self._check_shape(z, (self.embedding_dim,), "split_embedding", "an embedded element")
+        self.check_shape(z, (self.embedding_dim,), "split_embedding", "an embedded element")
         return [z[..., s] for s in self._emb]
 
     # ------------------------------------------------------------------ minimum API

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _numerics as nx
+from . import numerics as nx
 from .base import MatrixLieGroup
 from .so2 import SO2, so2_membership_error
 
@@ -40,20 +40,20 @@ class SE2(MatrixLieGroup):
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 3) -> (*batch, 3, 3)``, the Lie algebra matrix of ``(rho, theta)``."""
-        self._check_tangent(v, "hat")
+        self.check_tangent(v, "hat")
         rx, ry, th = v.unbind(-1)
         o = torch.zeros_like(th)
         return _matrix((o, -th, rx, th, o, ry, o, o, o))
 
     def vee(self, m: torch.Tensor) -> torch.Tensor:
         """``(*batch, 3, 3) -> (*batch, 3)``, the inverse of ``hat`` (theta: antisymmetric part)."""
-        self._check_element(m, "vee")
+        self.check_element(m, "vee")
         th = 0.5 * (m[..., 1, 0] - m[..., 0, 1])
         return torch.stack((m[..., 0, 2], m[..., 1, 2], th), dim=-1)
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 3) -> (*batch, 3, 3)``, ``[[R(theta), V(theta) rho], [0, 1]]``."""
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         rx, ry, th = v.unbind(-1)
         t2 = th * th
         a = nx.sin_over_t(t2)
@@ -64,7 +64,7 @@ class SE2(MatrixLieGroup):
 
     def log(self, x: torch.Tensor) -> torch.Tensor:
         """``(*batch, 3, 3) -> (*batch, 3)``, ``theta = atan2(R_10, R_00)`` and ``rho = V^-1 t``."""
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         th = torch.atan2(x[..., 1, 0], x[..., 0, 0])
         d = nx.half_t_cot_half_t(th * th)
         h = 0.5 * th
@@ -73,7 +73,7 @@ class SE2(MatrixLieGroup):
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:
         """``[[R^T, -R^T t], [0, 1]]``."""
-        self._check_element(x, "inverse")
+        self.check_element(x, "inverse")
         r00, r01, tx, r10, r11, ty = x[..., :2, :].flatten(-2).unbind(-1)
         o, i = torch.zeros_like(tx), torch.ones_like(tx)
         ux = -(r00 * tx + r10 * ty)
@@ -82,26 +82,26 @@ class SE2(MatrixLieGroup):
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """``Ad = [[R, (t_y, -t_x)^T], [0, 1]]`` for the ``(rho, theta)`` ordering."""
-        self._check_element(x, "adjoint")
+        self.check_element(x, "adjoint")
         r00, r01, tx, r10, r11, ty = x[..., :2, :].flatten(-2).unbind(-1)
         o, i = torch.zeros_like(tx), torch.ones_like(tx)
         return _matrix((r00, r01, ty, r10, r11, -tx, o, o, i))
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
         """``(*batch, 3, 3) -> (*batch, 6)``, ``(R00, R01, R10, R11, t_x, t_y)``."""
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return torch.cat((x[..., :2, :2].flatten(-2), x[..., :2, 2]), dim=-1)
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
         """``(*batch, 6) -> (*batch, 3, 3)``, the homogeneous matrix (no membership check)."""
-        self._check_shape(z, (6,), "unembed", "an embedded element")
+        self.check_shape(z, (6,), "unembed", "an embedded element")
         r00, r01, r10, r11, tx, ty = z.unbind(-1)
         o, i = torch.zeros_like(tx), torch.ones_like(tx)
         return _matrix((r00, r01, tx, r10, r11, ty, o, o, i))
 
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """The largest of ``||R R^T - I||_F``, ``|det R - 1|``, ``||bottom row - (0, 0, 1)||``."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         unit = torch.tensor([0.0, 0.0, 1.0], dtype=x.dtype, device=x.device)
         bottom = torch.linalg.vector_norm(x[..., 2, :] - unit, dim=-1)
         return torch.maximum(so2_membership_error(x[..., :2, :2]), bottom)

@@ -32,38 +32,38 @@ class SE23(MatrixLieGroup):
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 9) -> (*batch, 5, 5)``, ``[[skew(omega), nu, rho], [0, 0, 0], [0, 0, 0]]``."""
-        self._check_tangent(v, "hat")
+        self.check_tangent(v, "hat")
         top = torch.cat((skew(v[..., 6:]), v[..., :6].unflatten(-1, (2, 3)).transpose(-1, -2)), -1)
         return homogeneous(top, algebra=True)
 
     def vee(self, m: torch.Tensor) -> torch.Tensor:
         """``(*batch, 5, 5) -> (*batch, 9)``, the inverse of ``hat``."""
-        self._check_element(m, "vee")
+        self.check_element(m, "vee")
         return torch.cat((m[..., :3, 3], m[..., :3, 4], unskew(m[..., :3, :3])), dim=-1)
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 9) -> (*batch, 5, 5)``: ``R = exp(omega)``, ``(v, p) = J_l (nu, rho)``."""
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         r, jac = rotation_and_left_jacobian(v[..., 6:])
         vp = jac @ v[..., :6].unflatten(-1, (2, 3)).transpose(-1, -2)
         return homogeneous(torch.cat((r, vp), dim=-1))
 
     def log(self, x: torch.Tensor) -> torch.Tensor:
         """``(*batch, 5, 5) -> (*batch, 9)``, ``omega = log R``, ``(nu, rho) = J_l^-1 (v, p)``."""
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         w = SO3().log(x[..., :3, :3])
         nu_rho = left_jacobian_inverse(w) @ x[..., :3, 3:]  # (*batch, 3, 2)
         return torch.cat((nu_rho.transpose(-1, -2).flatten(-2), w), dim=-1)
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:
         """``[[R^T, -R^T v, -R^T p], [0, 1, 0], [0, 0, 1]]``."""
-        self._check_element(x, "inverse")
+        self.check_element(x, "inverse")
         rt = x[..., :3, :3].transpose(-1, -2)
         return homogeneous(torch.cat((rt, -(rt @ x[..., :3, 3:])), dim=-1))
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """``[[R, 0, skew(v) R], [0, R, skew(p) R], [0, 0, R]]``, shape ``(*batch, 9, 9)``."""
-        self._check_element(x, "adjoint")
+        self.check_element(x, "adjoint")
         r = x[..., :3, :3]
         o = torch.zeros_like(r)
         rows = (
@@ -75,12 +75,12 @@ class SE23(MatrixLieGroup):
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
         """``(*batch, 5, 5) -> (*batch, 15)``, ``(vec R, v, p)`` with ``vec`` row-major."""
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return torch.cat((x[..., :3, :3].flatten(-2), x[..., :3, 3], x[..., :3, 4]), dim=-1)
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
         """``(*batch, 15) -> (*batch, 5, 5)``, the matrix (no membership check)."""
-        self._check_shape(z, (15,), "unembed", "an embedded element")
+        self.check_shape(z, (15,), "unembed", "an embedded element")
         r = z[..., :9].unflatten(-1, (3, 3))
         vp = z[..., 9:].unflatten(-1, (2, 3)).transpose(-1, -2)
         return homogeneous(torch.cat((r, vp), dim=-1))
@@ -88,7 +88,7 @@ class SE23(MatrixLieGroup):
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """The largest of SO(3)'s error of ``R`` and the bottom rows' distance to
         ``[[0, 0, 0, 1, 0], [0, 0, 0, 0, 1]]`` (Frobenius)."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         return torch.maximum(SO3().membership_error(x[..., :3, :3]), affine_rows_error(x, 3))
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):

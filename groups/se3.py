@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _numerics as nx
+from . import numerics as nx
 from .base import MatrixLieGroup
 from .so3 import SO3, _quadratic_form, left_jacobian_inverse, skew, unskew
 
@@ -71,38 +71,38 @@ class SE3(MatrixLieGroup):
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 6) -> (*batch, 4, 4)``, ``[[skew(omega), rho], [0, 0]]``."""
-        self._check_tangent(v, "hat")
+        self.check_tangent(v, "hat")
         top = torch.cat((skew(v[..., 3:]), v[..., :3].unsqueeze(-1)), dim=-1)
         return homogeneous(top, algebra=True)
 
     def vee(self, m: torch.Tensor) -> torch.Tensor:
         """``(*batch, 4, 4) -> (*batch, 6)``, the inverse of ``hat``."""
-        self._check_element(m, "vee")
+        self.check_element(m, "vee")
         return torch.cat((m[..., :3, 3], unskew(m[..., :3, :3])), dim=-1)
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 6) -> (*batch, 4, 4)``, ``[[exp(omega), J_l(omega) rho], [0, 1]]``."""
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         r, jac = rotation_and_left_jacobian(v[..., 3:])
         t = jac @ v[..., :3].unsqueeze(-1)
         return homogeneous(torch.cat((r, t), dim=-1))
 
     def log(self, x: torch.Tensor) -> torch.Tensor:
         """``(*batch, 4, 4) -> (*batch, 6)``, ``omega = log R`` and ``rho = J_l(omega)^-1 t``."""
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         w = SO3().log(x[..., :3, :3])
         rho = (left_jacobian_inverse(w) @ x[..., :3, 3:]).squeeze(-1)
         return torch.cat((rho, w), dim=-1)
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:
         """``[[R^T, -R^T t], [0, 1]]``."""
-        self._check_element(x, "inverse")
+        self.check_element(x, "inverse")
         rt = x[..., :3, :3].transpose(-1, -2)
         return homogeneous(torch.cat((rt, -(rt @ x[..., :3, 3:])), dim=-1))
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """``Ad = [[R, skew(t) R], [0, R]]`` for ``(rho, omega)``, shape ``(*batch, 6, 6)``."""
-        self._check_element(x, "adjoint")
+        self.check_element(x, "adjoint")
         r = x[..., :3, :3]
         top = torch.cat((r, skew(x[..., :3, 3]) @ r), dim=-1)
         bottom = torch.cat((torch.zeros_like(r), r), dim=-1)
@@ -110,18 +110,18 @@ class SE3(MatrixLieGroup):
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
         """``(*batch, 4, 4) -> (*batch, 12)``, ``(vec R, t)`` with ``vec`` row-major."""
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return torch.cat((x[..., :3, :3].flatten(-2), x[..., :3, 3]), dim=-1)
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
         """``(*batch, 12) -> (*batch, 4, 4)``, the homogeneous matrix (no membership check)."""
-        self._check_shape(z, (12,), "unembed", "an embedded element")
+        self.check_shape(z, (12,), "unembed", "an embedded element")
         r = z[..., :9].unflatten(-1, (3, 3))
         return homogeneous(torch.cat((r, z[..., 9:].unsqueeze(-1)), dim=-1))
 
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """The largest of SO(3)'s error of ``R`` and ``||bottom row - (0, 0, 0, 1)||``."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         return torch.maximum(SO3().membership_error(x[..., :3, :3]), affine_rows_error(x, 3))
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):

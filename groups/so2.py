@@ -44,48 +44,48 @@ class SO2(MatrixLieGroup):
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 1) -> (*batch, 2, 2)``, ``[[0, -theta], [theta, 0]]``."""
-        self._check_tangent(v, "hat")
+        self.check_tangent(v, "hat")
         t = v[..., 0]
         o = torch.zeros_like(t)
         return torch.stack((o, -t, t, o), dim=-1).unflatten(-1, (2, 2))
 
     def vee(self, m: torch.Tensor) -> torch.Tensor:
         """``(*batch, 2, 2) -> (*batch, 1)``, reads the antisymmetric part of ``m``."""
-        self._check_element(m, "vee")
+        self.check_element(m, "vee")
         return 0.5 * (m[..., 1, 0] - m[..., 0, 1]).unsqueeze(-1)
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 1) -> (*batch, 2, 2)``, ``[[cos t, -sin t], [sin t, cos t]]``."""
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         return rotation_2d(v[..., 0])
 
     def log(self, x: torch.Tensor) -> torch.Tensor:
         """``(*batch, 2, 2) -> (*batch, 1)``, the angle ``atan2(R_10, R_00)`` in ``(-pi, pi]``."""
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         return torch.atan2(x[..., 1, 0], x[..., 0, 0]).unsqueeze(-1)
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:
         """The transpose."""
-        self._check_element(x, "inverse")
+        self.check_element(x, "inverse")
         return x.transpose(-1, -2)
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
         """``(*batch, 2, 2) -> (*batch, 4)``, row-major ``vec R``."""
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return x.flatten(-2)
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
-        self._check_shape(z, (4,), "unembed", "an embedded element")
+        self.check_shape(z, (4,), "unembed", "an embedded element")
         return z.unflatten(-1, (2, 2))
 
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """``max(||R R^T - I||_F, |det R - 1|)`` (the determinant catches reflections)."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         return so2_membership_error(x)
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """``Ad_R = 1`` (SO(2) is abelian), shape ``(*batch, 1, 1)``."""
-        self._check_element(x, "adjoint")
+        self.check_element(x, "adjoint")
         return torch.ones_like(x[..., :1, :1])
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import torch
 
-from . import _numerics as nx
+from . import numerics as nx
 from .base import MatrixLieGroup
 
 __all__ = ["SO3", "skew", "unskew", "left_jacobian", "left_jacobian_inverse"]
@@ -136,15 +136,15 @@ class SO3(MatrixLieGroup):
     angle_slices = (slice(0, 3),)
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
-        self._check_tangent(v, "hat")
+        self.check_tangent(v, "hat")
         return skew(v)
 
     def vee(self, m: torch.Tensor) -> torch.Tensor:
-        self._check_element(m, "vee")
+        self.check_element(m, "vee")
         return unskew(m)
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "inverse")
+        self.check_element(x, "inverse")
         return x.transpose(-1, -2)
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
@@ -160,7 +160,7 @@ class SO3(MatrixLieGroup):
         matrix product with a table of 0 and +-1: each entry of ``R`` is a sum of at most two
         nonzero terms, so the product rounds it once, like the plain sum.
         """
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         batch = v.shape[:-1]
         eye = torch.eye(3, dtype=v.dtype, device=v.device)
         w = torch.mm(eye, v.reshape(-1, 3).t())  # (3, N): rows x, y, z (a transposing copy)
@@ -197,7 +197,7 @@ class SO3(MatrixLieGroup):
         ``(w, x, y, z)`` of Shepperd's method may be any nonzero multiple of the unit one (atan2
         and the ratio do not see the scale), and the sign picks the one with ``w >= 0``.
         """
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         batch = x.shape[:-2]
         qw, qx, qy, qz = _matrix_to_quaternion(x)  # rows (N,)
         s2 = torch.addcmul(torch.addcmul(qx * qx, qy, qy), qz, qz)
@@ -207,23 +207,23 @@ class SO3(MatrixLieGroup):
         return torch.mm(torch.stack((k * qx, k * qy, k * qz)).t(), two).reshape(*batch, 3)
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return x.flatten(-2)
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
-        self._check_shape(z, (9,), "unembed", "an embedded element")
+        self.check_shape(z, (9,), "unembed", "an embedded element")
         return z.unflatten(-1, (3, 3))
 
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """``max(||R R^T - I||_F, |det R - 1|)`` (the determinant catches reflections)."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         orth = torch.linalg.matrix_norm(x @ x.transpose(-1, -2) - eye)
         return torch.maximum(orth, (torch.linalg.det(x) - 1).abs())
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """``Ad_R = R`` for rotation vectors."""
-        self._check_element(x, "adjoint")
+        self.check_element(x, "adjoint")
         return x
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):
@@ -233,10 +233,10 @@ class SO3(MatrixLieGroup):
 
     def left_jacobian(self, v: torch.Tensor) -> torch.Tensor:
         """See :func:`left_jacobian`."""
-        self._check_tangent(v, "left_jacobian")
+        self.check_tangent(v, "left_jacobian")
         return left_jacobian(v)
 
     def left_jacobian_inverse(self, v: torch.Tensor) -> torch.Tensor:
         """See :func:`left_jacobian_inverse`."""
-        self._check_tangent(v, "left_jacobian_inverse")
+        self.check_tangent(v, "left_jacobian_inverse")
         return left_jacobian_inverse(v)

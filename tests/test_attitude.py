@@ -47,7 +47,7 @@ def test_config_composes_and_generates_a_tiny_dataset(tmp_path):
     system = instantiate(cfg.system)
     assert isinstance(system, Attitude)
     assert system.config() == Attitude().config()  # the yaml restates the defaults
-    assert cfg.dataset.name == "attitude_small" and cfg.dataset.inference.length == 200
+    assert cfg.dataset.name == "attitude_small" and "inference" not in cfg.dataset
     dcfg = DatasetConfig(**dict(cfg.dataset))
     dcfg.num_sequences, dcfg.length, dcfg.cache_dir, dcfg.progress = 10, 6, str(tmp_path), False
     parts = load_or_generate(system, dcfg)

@@ -6,8 +6,9 @@
   from :class:`~groups.MatrixLieGroup`: non-compact, non-abelian, with no rotation angle.
 * Deliberately broken subclasses, one per classic bug (wrong product, a single ``torch.where``,
   a wrong Taylor branch, jaxlie's ``V ~ R`` near zero, ``acos`` of the trace, a transposed
-  adjoint, no membership test, an in-place inverse): each must make ``check_group`` raise an
-  AssertionError that names the property that catches it. This is what proves the suite can fail.
+  adjoint, no membership test, an in-place inverse, a false ``embedding_is_flat``): each must
+  make ``check_group`` raise an AssertionError that names the property that catches it. This is
+  what proves the suite can fail.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from groups import SE3, SO3, Euclidean, LieGroup, MatrixLieGroup, Product
+from groups import SE2, SE3, SO3, Euclidean, LieGroup, MatrixLieGroup, Product
 from groups.so3 import unskew
 from groups.testing import check_group
 
@@ -75,37 +76,37 @@ class PositiveAffine1D(MatrixLieGroup):
     embedding_dim = 4
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
-        self._check_tangent(v, "hat")
+        self.check_tangent(v, "hat")
         o = torch.zeros_like(v[..., 0])
         return torch.stack((v[..., 0], v[..., 1], o, o), -1).unflatten(-1, (2, 2))
 
     def vee(self, m: torch.Tensor) -> torch.Tensor:
-        self._check_element(m, "vee")
+        self.check_element(m, "vee")
         return m[..., 0, :]
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         alpha, beta = v.unbind(-1)
         a, b = torch.exp(alpha), beta * _expm1_over_x(alpha)
         o = torch.zeros_like(a)
         return torch.stack((a, b, o, torch.ones_like(a)), -1).unflatten(-1, (2, 2))
 
     def log(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         alpha = torch.log(x[..., 0, 0])
         return torch.stack((alpha, x[..., 0, 1] / _expm1_over_x(alpha)), -1)
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return x.flatten(-2)
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
-        self._check_shape(z, (4,), "unembed", "an embedded element")
+        self.check_shape(z, (4,), "unembed", "an embedded element")
         return z.unflatten(-1, (2, 2))
 
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """``|x_10| + |x_11 - 1| + max(-x_00, 0)``: the bottom row and the sign of ``a``."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         return x[..., 1, 0].abs() + (x[..., 1, 1] - 1).abs() + torch.relu(-x[..., 0, 0])
 
 
@@ -193,6 +194,24 @@ class InPlaceInverse(ComplexSO2):
         return x
 
 
+class ColumnMajorSO3(SO3):
+    """Embeds ``R`` column by column while SO3 declares ``embedding_is_flat``: a fine embedding,
+    but not the flattened element that code trusting the declaration reads."""
+
+    def embed(self, x):
+        return super().embed(x.transpose(-1, -2))
+
+    def unembed(self, z):
+        return super().unembed(z).transpose(-1, -2)
+
+
+class FlatClaimSE2(SE2):
+    """Declares ``embedding_is_flat``, but embeds ``(R, t)`` in 6 numbers, not the 9 of a 3 x 3
+    element."""
+
+    embedding_is_flat = True
+
+
 BROKEN = [
     # (group, the checks to run, the property that must be named, a phrase of the message)
     (SingleWhereSO3(), ["exp_log", "gradients_finite"], "gradients_finite", "non-finite"),
@@ -202,6 +221,8 @@ BROKEN = [
     (TransposedAdjointSO3(), ["adjoint"], "adjoint", "exp(adjoint(x) v)"),
     (NoMembershipTest(), ["embedding"], "embedding", "off the group"),
     (InPlaceInverse(), ["membership"], "membership", "in place"),
+    (ColumnMajorSO3(), ["embedding"], "embedding", "embedding_is_flat is True, but embed(x)"),
+    (FlatClaimSE2(), ["embedding"], "embedding", "embedding_is_flat is True, but embedding_dim"),
 ]
 
 

@@ -61,7 +61,7 @@ def _axiom_params() -> list:
 
 @pytest.mark.parametrize("group, dtype, batch_shape, prop", _axiom_params())
 def test_axiom(group: LieGroup, dtype: torch.dtype, batch_shape: tuple, prop: str) -> None:
-    result = CHECKS[prop](group, dtype, batch_shape, grid=batch_shape == ())
+    result = CHECKS[prop](group, dtype=dtype, batch_shape=batch_shape, grid=batch_shape == ())
     assert not result.skipped, result.skipped
     assert result.worst_ratio <= 1.0, str(result)
 
@@ -86,8 +86,8 @@ def test_random_batch_shapes(group: LieGroup, data) -> None:
     """Every operation keeps any batch shape drawn by ``batch_shapes()``."""
     bs = data.draw(batch_shapes(), label="batch shape")
     dtype = data.draw(st.sampled_from(DTYPES), label="dtype")
-    x = data.draw(elements(group, bs, dtype), label="x")
-    v = data.draw(tangent_vectors(group, bs, dtype), label="v")
+    x = data.draw(elements(group, batch_shape=bs, dtype=dtype), label="x")
+    v = data.draw(tangent_vectors(group, batch_shape=bs, dtype=dtype), label="v")
     k, el = group.tangent_dim, tuple(group.element_shape)
     assert x.shape == (*bs, *el) and v.shape == (*bs, k)
     assert group.exp(v).shape == (*bs, *el)
@@ -103,13 +103,13 @@ def test_tangent_vectors_reach_the_adversarial_cases() -> None:
     """The strategy produces an angle of exactly pi, and a tiny rotation with a huge translation."""
     settings = hypothesis.settings(max_examples=500, database=None)
     v = hypothesis.find(
-        tangent_vectors(SO3(), (), torch.float64),
+        tangent_vectors(SO3(), dtype=torch.float64),
         lambda v: abs(float(v.norm()) - math.pi) < 1e-15,
         settings=settings,
     )
     assert abs(float(v.norm()) - math.pi) < 1e-15
     v = hypothesis.find(
-        tangent_vectors(SE3(), (), torch.float64),
+        tangent_vectors(SE3(), dtype=torch.float64),
         lambda v: 0 < float(v[3:].norm()) < 1e-2 and float(v[:3].norm()) > 100,
         settings=settings,
     )

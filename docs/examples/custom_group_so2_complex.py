@@ -28,6 +28,9 @@ class ComplexSO2(LieGroup):
     embedding_dim = 2
     # The whole tangent vector is a rotation angle: groups.testing puts 0, 1e-8, ..., pi there.
     angle_slices = (slice(0, 1),)
+    # embed(x) is x itself (flattened): declared, so code reading the state can skip embedding
+    # it; groups.testing checks the declaration.
+    embedding_is_flat = True
 
     # -- the minimum API ---------------------------------------------------------------------
 
@@ -37,20 +40,20 @@ class ComplexSO2(LieGroup):
 
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """Complex multiplication; batch dimensions broadcast like torch's."""
-        self._check_element(x, "compose")  # clear ValueError/TypeError on a wrong shape or dtype
-        self._check_element(y, "compose")
+        self.check_element(x, "compose")  # clear ValueError/TypeError on a wrong shape or dtype
+        self.check_element(y, "compose")
         a, b = x.unbind(-1)
         c, d = y.unbind(-1)
         return torch.stack((a * c - b * d, a * d + b * c), dim=-1)
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:
         """The complex conjugate (the inverse of a unit complex number)."""
-        self._check_element(x, "inverse")
+        self.check_element(x, "inverse")
         return torch.stack((x[..., 0], -x[..., 1]), dim=-1)
 
     def exp(self, v: torch.Tensor) -> torch.Tensor:
         """``(*batch, 1) -> (*batch, 2)``, ``(cos t, sin t)``: no singularity, nothing to guard."""
-        self._check_tangent(v, "exp")
+        self.check_tangent(v, "exp")
         t = v[..., 0]
         return torch.stack((torch.cos(t), torch.sin(t)), dim=-1)
 
@@ -60,20 +63,20 @@ class ComplexSO2(LieGroup):
         ``atan2`` stays accurate at and near pi (``acos(Re z)`` would not), and its gradient is
         finite everywhere on the group (``|z| = 1``, never 0).
         """
-        self._check_element(x, "log")
+        self.check_element(x, "log")
         return torch.atan2(x[..., 1], x[..., 0]).unsqueeze(-1)
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
-        self._check_element(x, "embed")
+        self.check_element(x, "embed")
         return x
 
     def unembed(self, z: torch.Tensor) -> torch.Tensor:
-        self._check_shape(z, (2,), "unembed", "an embedded element")
+        self.check_shape(z, (2,), "unembed", "an embedded element")
         return z
 
     def membership_error(self, x: torch.Tensor) -> torch.Tensor:
         """``| |z|^2 - 1 |``, shape ``(*batch,)``: 0 on the unit circle, NaN for NaN input."""
-        self._check_element(x, "membership_error")
+        self.check_element(x, "membership_error")
         return ((x * x).sum(-1) - 1.0).abs()
 
     # -- optional: a derived method overridden for speed or for a better distribution ----------

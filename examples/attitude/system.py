@@ -171,7 +171,7 @@ class Attitude(System):
 
         Exact for a rate held over the step; differentiable (an EKF can linearise it).
         """
-        self.group._check_element(x, "step")
+        self.group.check_element(x, "step")
         _check_last(drive, 3, "drive (Omega)")
         dt = self.dt if dt is None else dt
         R = x[..., :9].unflatten(-1, (3, 3))
@@ -184,7 +184,7 @@ class Attitude(System):
     def observe(self, x: torch.Tensor, drive: torch.Tensor) -> torch.Tensor:
         """The noise-free ``(R^T g, R^T m, Omega + b)``, ``(*batch, 9)``; ``measure(x, w, n)``
         adds :meth:`apply_noise`'s ``(s_g n1, s_m n2, s_w n3)``."""
-        self.group._check_element(x, "measure")
+        self.group.check_element(x, "measure")
         _check_last(drive, 3, "drive (Omega)")
         R = x[..., :9].unflatten(-1, (3, 3))
         g, m = self.directions(x.dtype, x.device)

@@ -240,7 +240,7 @@ class Planar(System):
 
         With ``exp((v dt, 0, omega dt)) = [[R_inc, t_inc], [0, 1]]``: ``R' = R R_inc``,
         ``p' = p + R t_inc`` (the same product for both layouts)."""
-        self.group._check_element(x, "step")
+        self.group.check_element(x, "step")
         _check_last(drive, 2, "drive (v, omega)")
         dt = self.dt if dt is None else dt
         v, w = drive.unbind(-1)
@@ -255,7 +255,7 @@ class Planar(System):
     def observe(self, x: torch.Tensor, drive: torch.Tensor) -> torch.Tensor:
         """The noise-free ``(p, v + b_v, omega + b_omega)``, ``(*batch, 4)``; ``measure(x, w,
         n)`` adds :meth:`apply_noise`'s ``(s_p n1, s_v n2, s_w n3)``."""
-        self.group._check_element(x, "measure")
+        self.group.check_element(x, "measure")
         _check_last(drive, 2, "drive (v, omega)")
         return torch.cat(torch.broadcast_tensors(self.position(x), drive + x[..., -2:]), dim=-1)
 

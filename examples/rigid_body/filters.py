@@ -112,7 +112,7 @@ def jl_times_v_derivative(phi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     ``-B [v]x + 2 B' (phi x v) phi^T + C ((phi.v) I + phi v^T - 2 v phi^T) + 2 C' (phi (phi.v) - t^2 v) phi^T``
     with ``B'``, ``C'`` the derivatives in ``t^2`` (Taylor series near 0).
     """
-    from groups import _numerics as nx
+    from groups import numerics as nx
 
     t2 = (phi * phi).sum(-1)
     b, c = nx.one_minus_cos_over_t2(t2), nx.t_minus_sin_over_t3(t2)

@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from scipy.integrate import solve_ivp
 
-from groups import _numerics as nx
+from groups import numerics as nx
 
 from manifold_nets.progress import progress
 
@@ -82,7 +82,7 @@ def increments(
     ``J_l(Omega dt) v dt`` ``(*batch, 3)``.
 
     The same values as ``SO3().exp(phi)`` and ``left_jacobian(phi) @ v * dt`` with
-    ``phi = Omega dt``, from the same safe coefficient functions of ``groups._numerics``, written
+    ``phi = Omega dt``, from the same safe coefficient functions of ``groups.numerics``, written
     out entrywise: Rodrigues ``exp(phi) = cos t I + A [phi]x + B phi phi^T`` and
     ``J_l(phi) v = (1 - C t^2) v + B phi x v + C (phi . v) phi`` with ``A = sin t / t``,
     ``B = (1 - cos t) / t^2``, ``C = (t - sin t) / t^3``. Data generation is this function in a

@@ -241,7 +241,7 @@ class RigidBody(System):
         ``x`` ``(*batch, *element_shape)``, ``drive`` ``(*batch, 6)``; differentiable (an EKF can
         linearise it). The same motion for both layouts (on SE(3) it is ``T exp((v, Omega) dt)``).
         """
-        self.group._check_element(x, "step")
+        self.group.check_element(x, "step")
         _check_last(drive, 6, "drive (Omega, v)")
         dt = self.dt if dt is None else dt
         R1, p1 = exact_step(self.rotation(x), self.position(x), drive[..., :3], drive[..., 3:], dt)
@@ -290,7 +290,7 @@ class RigidBody(System):
         :meth:`apply_noise` of it: ``(vec R exp([w1]x), p + w2, Omega + b_Omega + w3, v + b_v +
         w4)``.
         """
-        self.group._check_element(x, "measure")
+        self.group.check_element(x, "measure")
         _check_last(drive, 6, "drive (Omega, v)")
         return _cat(self._pose_embedding(x), drive + self.biases(x))  # Omega + b_Omega, v + b_v
 

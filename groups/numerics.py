@@ -1,4 +1,8 @@
-"""Numerically safe scalar functions shared by every group (one place for all the numerics).
+"""The safe sinc-like helpers and their thresholds: one place for all the numerics of the groups.
+
+Public for authors of a group or a system who need the same coefficients (``from groups import
+numerics as nx``; ``nx.sin_over_t(t2)``), so that nobody writes a second, subtly different
+``sin(t)/t``.
 
 Every function here takes ``t2 = theta**2`` (a smooth function of the tangent vector, so no
 ``sqrt`` is differentiated at 0) and returns a coefficient of the closed-form exponential,

@@ -1,0 +1,461 @@
+"""The axioms, one function each: ``property(case, data)`` checks one law on one case.
+
+``case`` is a :class:`~groups.testing.comparison.Case` (the group, dtype and batch shape, and the
+comparisons); ``data`` is hypothesis' ``st.data()``, or None on the deterministic grid and for
+:data:`DETERMINISTIC` properties, and is only passed back to ``case.x``/``case.v``/``case.seed``.
+:data:`PROPERTIES` lists them in the order ``check_group`` runs them. In the bodies,
+``ne = len(group.element_shape)`` is the number of trailing dimensions of an element.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+
+import torch
+
+from ..base import GroupMembershipError, LieGroup, MatrixLieGroup
+from .comparison import Case, element_magnitude, format_tensor, magnitude
+
+__all__ = [
+    "PROPERTIES",
+    "DETERMINISTIC",
+    "membership",
+    "identity",
+    "inverse",
+    "associativity",
+    "exp_log",
+    "log_exp",
+    "matrix_exp",
+    "adjoint",
+    "embedding",
+    "rplus_rminus",
+    "gradients_finite",
+    "gradcheck",
+    "batched_vs_looped",
+    "broadcasting",
+]
+
+
+def _matvec(m: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return (m @ v.unsqueeze(-1)).squeeze(-1)
+
+
+def _max_angle(group: LieGroup, v: torch.Tensor) -> torch.Tensor:
+    """The largest rotation angle of each tangent vector, ``(*batch,)`` in float64 (0 if none)."""
+    v = v.detach().double()
+    if not group.angle_slices:
+        return v.new_zeros(v.shape[:-1])
+    norms = [torch.linalg.vector_norm(v[..., s], dim=-1) for s in group.angle_slices]
+    return torch.stack(norms, -1).amax(-1)
+
+
+def membership(c: Case, data) -> None:
+    """Outputs are on the group and have their documented shapes; no input is modified."""
+    G, dt, bs, k = c.group, c.dtype, c.batch_shape, c.group.tangent_dim
+    x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
+    gen = torch.Generator().manual_seed(c.seed(data, "random seed"))
+    inputs = {"x": x, "y": y, "v": v}
+    saved = {name: t.clone() for name, t in inputs.items()}
+    el = tuple(G.element_shape)
+    # name -> (operation, trailing shape of its output, is the output a group element?)
+    ops: dict[str, tuple[Callable[[], torch.Tensor], tuple[int, ...], bool]] = {
+        "identity(batch_shape)": (lambda: G.identity(bs, dtype=dt), el, True),
+        "compose(x, y)": (lambda: G.compose(x, y), el, True),
+        "inverse(x)": (lambda: G.inverse(x), el, True),
+        "exp(v)": (lambda: G.exp(v), el, True),
+        "rplus(x, v)": (lambda: G.rplus(x, v), el, True),
+        "random(batch_shape)": (lambda: G.random(bs, generator=gen, dtype=dt), el, True),
+        "log(x)": (lambda: G.log(x), (k,), False),
+        "rminus(y, x)": (lambda: G.rminus(y, x), (k,), False),
+        "between(x, y)": (lambda: G.between(x, y), el, True),
+        "embed(x)": (lambda: G.embed(x), (G.embedding_dim,), False),
+        "adjoint(x)": (lambda: G.adjoint(x), (k, k), False),
+        "distance(x, y)": (lambda: G.distance(x, y), (), False),
+    }
+    for name, (op, trailing, is_element) in ops.items():
+        out = op()
+        for arg, before in saved.items():
+            if not torch.equal(before, inputs[arg]):
+                c.fail(f"{name} modified its input {arg} in place")
+        c.shape(name, out, trailing)
+        if is_element:
+            err = G.membership_error(out)
+            c.shape(f"membership_error({name})", err, ())
+            c.within(f"membership_error({name})", err, c.tol.member, inputs=inputs)
+
+
+def identity(c: Case, data) -> None:
+    """``e x = x e = x``, ``e^-1 = e``, ``exp(0) = e``, ``log(e) = 0``, ``rminus(x, x) = 0``."""
+    G, dt, bs, ne = c.group, c.dtype, c.batch_shape, len(c.group.element_shape)
+    x = c.x(data, "x")
+    e = G.identity(bs, dtype=dt)
+    zero = torch.zeros(*bs, G.tangent_dim, dtype=dt)
+    c.close("compose(identity, x) == x", G.compose(e, x), x, trailing=ne, inputs={"x": x})
+    c.close("compose(x, identity) == x", G.compose(x, e), x, trailing=ne, inputs={"x": x})
+    c.close("inverse(identity) == identity", G.inverse(e), e, trailing=ne)
+    c.close("exp(0) == identity", G.exp(zero), e, trailing=ne)
+    c.close_tangent("log(identity) == 0", G.log(e), zero)
+    c.close_tangent(
+        "rminus(x, x) == 0", G.rminus(x, x), zero, scale=element_magnitude(G, x) ** 2,
+        inputs={"x": x},
+    )  # fmt: skip
+
+
+def inverse(c: Case, data) -> None:
+    """``x x^-1 = x^-1 x = e``, ``(x^-1)^-1 = x``, ``(x y)^-1 = y^-1 x^-1``."""
+    G, dt, bs, ne = c.group, c.dtype, c.batch_shape, len(c.group.element_shape)
+    x, y = c.x(data, "x"), c.x(data, "y")
+    e = G.identity(bs, dtype=dt)
+    xi, yi = G.inverse(x), G.inverse(y)
+    s = element_magnitude(G, x) * element_magnitude(G, xi)
+    ins = {"x": x}
+    c.close("compose(x, inverse(x)) == identity", G.compose(x, xi), e, trailing=ne, scale=s,
+            inputs=ins)
+    c.close("compose(inverse(x), x) == identity", G.compose(xi, x), e, trailing=ne, scale=s,
+            inputs=ins)
+    c.close("inverse(inverse(x)) == x", G.inverse(xi), x, trailing=ne, scale=s, inputs=ins)
+    s2 = s * element_magnitude(G, y) * element_magnitude(G, yi)
+    c.close(
+        "inverse(compose(x, y)) == compose(inverse(y), inverse(x))",
+        G.inverse(G.compose(x, y)), G.compose(yi, xi), trailing=ne, scale=s2,
+        inputs={"x": x, "y": y},
+    )  # fmt: skip
+
+
+def associativity(c: Case, data) -> None:
+    """``(x y) z = x (y z)``."""
+    G, ne = c.group, len(c.group.element_shape)
+    x, y, z = c.x(data, "x"), c.x(data, "y"), c.x(data, "z")
+    s = element_magnitude(G, x) * element_magnitude(G, y) * element_magnitude(G, z)
+    c.close(
+        "compose(compose(x, y), z) == compose(x, compose(y, z))",
+        G.compose(G.compose(x, y), z), G.compose(x, G.compose(y, z)), trailing=ne, scale=s,
+        inputs={"x": x, "y": y, "z": z},
+    )  # fmt: skip
+
+
+def exp_log(c: Case, data) -> None:
+    """``exp(log(x)) = x`` for every element, angle pi included."""
+    G, ne = c.group, len(c.group.element_shape)
+    x = c.x(data, "x")
+    c.close("exp(log(x)) == x", G.exp(G.log(x)), x, trailing=ne,
+            inputs={"x": x, "log(x)": G.log(x)})
+
+
+def _log_exp_tolerance(c: Case, v: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(mask, tol)``: where ``log(exp v) = v`` is required, and the tolerance grown near pi."""
+    theta = _max_angle(c.group, v)
+    gap = math.pi - theta
+    mask = gap > c.tol.pi_margin
+    gap = torch.where(mask, gap, torch.ones_like(gap))
+    return mask, c.tol.value + c.tol.near_pi * c.eps / gap
+
+
+def log_exp(c: Case, data) -> None:
+    """``log(exp(v)) = v`` below ``pi - pi_margin``; ``exp(log(exp(v))) = exp(v)`` everywhere."""
+    G = c.group
+    v = c.v(data, "v")
+    mask, tol = _log_exp_tolerance(c, v)
+    got = G.log(G.exp(v))
+    got = torch.where(mask.unsqueeze(-1), got, v)  # elements at the cut locus are not compared
+    c.close_tangent("log(exp(v)) == v (angles < pi - margin)", got, v, tol=tol, inputs={"v": v})
+    # At and beyond the margin the log may pick the other branch, but it must stay on the group.
+    c.close(
+        "exp(log(exp(v))) == exp(v)", G.exp(G.log(G.exp(v))), G.exp(v),
+        trailing=len(G.element_shape), inputs={"v": v},
+    )  # fmt: skip
+
+
+def _matrix_exp_reference(a: torch.Tensor) -> torch.Tensor:
+    """``torch.linalg.matrix_exp`` of ``(*batch, d, d)``, always called on a batch of >= 2.
+
+    torch's unbatched path (a single matrix) picks a degree-8 Taylor polynomial with a wrong
+    coefficient for norms around 0.01-0.1 (errors up to 2e-10 in float64, 5e-5 in float32 in
+    torch 2.13; pytorch/pytorch#196592). Padding the batch with a zero matrix takes the accurate
+    batched path.
+    """
+    d = a.shape[-1]
+    flat = a.reshape(-1, d, d)
+    padded = torch.cat((flat, flat.new_zeros(1, d, d)))
+    return torch.linalg.matrix_exp(padded)[:-1].reshape(a.shape)
+
+
+def matrix_exp(c: Case, data) -> None:
+    """``exp(v)`` against ``matrix_exp(hat(v))`` in float64, ``vee(hat(v)) = v``; matrix groups."""
+    G = c.group
+    if not isinstance(G, MatrixLieGroup):
+        c.result.skipped = "not a MatrixLieGroup"
+        return
+    v = c.v(data, "v")
+    ref = _matrix_exp_reference(G.hat(v.double()))
+    c.shape("hat(v)", G.hat(v), G.element_shape)
+    c.close(f"exp(v) in {c.dtype} == matrix_exp(hat(v)) in float64", G.exp(v), ref, trailing=2,
+            inputs={"v": v})
+    c.close_tangent("vee(hat(v)) == v", G.vee(G.hat(v)), v, inputs={"v": v})
+
+
+def adjoint(c: Case, data) -> None:
+    """``x exp(v) x^-1 = exp(Ad_x v)``, ``Ad_{xy} = Ad_x Ad_y``, ``Ad_x Ad_{x^-1} = I``."""
+    G, ne, k = c.group, len(c.group.element_shape), c.group.tangent_dim
+    x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
+    ad_x = G.adjoint(x)
+    c.shape("adjoint(x)", ad_x, (k, k))
+    xi, ev = G.inverse(x), G.exp(v)
+    lhs = G.compose(G.compose(x, ev), xi)
+    rhs = G.exp(_matvec(ad_x, v))
+    s = element_magnitude(G, x) * element_magnitude(G, xi) * element_magnitude(G, ev)
+    c.close("compose(x, exp(v), inverse(x)) == exp(adjoint(x) v)", rhs, lhs, trailing=ne,
+            scale=s, inputs={"x": x, "v": v})
+    ad_y = G.adjoint(y)
+    c.close("adjoint(compose(x, y)) == adjoint(x) adjoint(y)", G.adjoint(G.compose(x, y)),
+            ad_x @ ad_y, trailing=2, scale=magnitude(ad_x, 2) * magnitude(ad_y, 2),
+            inputs={"x": x, "y": y})
+    eye = torch.eye(k, dtype=c.dtype).expand_as(ad_x)
+    ad_xi = G.adjoint(xi)
+    c.close("adjoint(x) adjoint(inverse(x)) == I", ad_x @ ad_xi, eye, trailing=2,
+            scale=magnitude(ad_x, 2) * magnitude(ad_xi, 2), inputs={"x": x})
+
+
+def _flat_embedding(c: Case, x: torch.Tensor, z: torch.Tensor) -> None:
+    """A group declaring ``embedding_is_flat`` embeds ``x`` as ``x`` flattened, exactly."""
+    G = c.group
+    numel = math.prod(G.element_shape)
+    if G.embedding_dim != numel:
+        c.fail(
+            f"embedding_is_flat is True, but embedding_dim {G.embedding_dim} is not the "
+            f"{numel} entries of an element of shape {tuple(G.element_shape)}; declare "
+            f"embedding_is_flat = False, or embed as x flattened"
+        )
+    flat = x.reshape(*G.batch_shape(x), numel)
+    differs = (z != flat).reshape(-1, numel).any(-1)
+    if differs.any():
+        first = int(differs.nonzero()[0, 0])
+        index = torch.unravel_index(torch.tensor(first), c.batch_shape) if c.batch_shape else ()
+        index = tuple(int(j) for j in index)
+        c.fail(
+            f"embedding_is_flat is True, but embed(x) is not x flattened row-major in "
+            f"{int(differs.sum())} of {differs.numel()} element(s); the first at batch index "
+            f"{index}: x = {format_tensor(flat.reshape(-1, numel)[first])}, "
+            f"embed(x) = {format_tensor(z.reshape(-1, numel)[first])}"
+        )
+
+
+def _embedding_rejects(c: Case, data, z: torch.Tensor) -> None:
+    """``from_embedding`` raises GroupMembershipError for NaN and (where the image is a proper
+    submanifold, ``embedding_dim > tangent_dim``) for a random push off the group."""
+    G = c.group
+    bad = z.clone().reshape(-1, G.embedding_dim)
+    bad[0, 0] = torch.nan
+    off = {"NaN in the first element": bad.reshape(z.shape)}
+    if G.embedding_dim > G.tangent_dim:
+        gen = torch.Generator().manual_seed(c.seed(data, "push seed"))
+        push = torch.randn(z.shape, generator=gen, dtype=torch.float64).to(c.dtype)
+        off["a random push off the group"] = z + 0.5 * push * (1 + z.abs())
+    for what, zb in off.items():
+        try:
+            G.from_embedding(zb)
+        except GroupMembershipError:
+            continue
+        except Exception as err:  # noqa: BLE001 - the wrong exception type is the failure
+            c.fail(
+                f"from_embedding with {what} raised {type(err).__name__}, expected "
+                f"GroupMembershipError: {err}"
+            )
+        c.fail(
+            f"from_embedding accepted an embedding with {what}; expected GroupMembershipError "
+            f"(membership_error {format_tensor(G.membership_error(G.unembed(zb)))})"
+        )
+
+
+def embedding(c: Case, data) -> None:
+    """The embedding round trips, ``from_embedding`` rejects what is off the group, and a group
+    declaring ``embedding_is_flat`` embeds an element as itself flattened."""
+    G, ne = c.group, len(c.group.element_shape)
+    x = c.x(data, "x")
+    z = G.embed(x)
+    c.shape("embed(x)", z, (G.embedding_dim,))
+    if G.embedding_is_flat:
+        _flat_embedding(c, x, z)
+    c.close("unembed(embed(x)) == x", G.unembed(z), x, trailing=ne, inputs={"x": x})
+    try:
+        back = G.from_embedding(z)
+    except GroupMembershipError as err:
+        c.fail(f"from_embedding(embed(x)) rejected an element of the group: {err}")
+    c.close("from_embedding(embed(x)) == x", back, x, trailing=ne, inputs={"x": x})
+    c.close("embed(unembed(embed(x))) == embed(x)", G.embed(G.unembed(z)), z, trailing=1)
+    _embedding_rejects(c, data, z)
+
+
+def rplus_rminus(c: Case, data) -> None:
+    """``rplus``, ``between``, ``rminus`` and ``distance`` agree with compose, exp and log."""
+    G, ne = c.group, len(c.group.element_shape)
+    x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
+    xi = G.inverse(x)
+    sx = element_magnitude(G, x) * element_magnitude(G, xi)
+    ins = {"x": x, "y": y}
+    c.close("rplus(x, v) == compose(x, exp(v))", G.rplus(x, v), G.compose(x, G.exp(v)),
+            trailing=ne, scale=sx, inputs={"x": x, "v": v})
+    c.close("between(x, y) == compose(inverse(x), y)", G.between(x, y), G.compose(xi, y),
+            trailing=ne, scale=sx, inputs=ins)
+    d = G.rminus(y, x)
+    c.close("rplus(x, rminus(y, x)) == y", G.rplus(x, d), y, trailing=ne,
+            scale=sx * element_magnitude(G, y), inputs=ins)
+    mask, tol = _log_exp_tolerance(c, v)
+    got = torch.where(mask.unsqueeze(-1), G.rminus(G.rplus(x, v), x), v)
+    c.close_tangent("rminus(rplus(x, v), x) == v (angles < pi - margin)", got, v, scale=sx,
+                    tol=tol, inputs={"x": x, "v": v})
+    dist = G.distance(x, y)
+    c.shape("distance(x, y)", dist, ())
+    c.within("distance(x, y) >= 0", -dist, 0.0, inputs=ins)
+    c.close("distance(x, y) == |rminus(y, x)|", dist, torch.linalg.vector_norm(d, dim=-1),
+            trailing=0, inputs=ins)
+
+
+def gradients_finite(c: Case, data) -> None:
+    """No NaN/Inf in the gradients of ``exp``, ``log(exp(v))`` and ``embed(rplus(x, v))``."""
+    G = c.group
+    x = c.x(data, "x")
+    v = c.v(data, "v")
+    fns: dict[str, Callable[..., torch.Tensor]] = {
+        "sum(exp(v))": lambda x_, v_: G.exp(v_).sum(),
+        "sum(log(exp(v)))": lambda x_, v_: G.log(G.exp(v_)).sum(),
+        "sum(embed(rplus(x, v)))": lambda x_, v_: G.embed(G.rplus(x_, v_)).sum(),
+    }
+    for name, fn in fns.items():
+        xr = x.detach().clone().requires_grad_(True)
+        vr = v.detach().clone().requires_grad_(True)
+        gx, gv = torch.autograd.grad(fn(xr, vr), (xr, vr), allow_unused=True)
+        for wrt, g in (("v", gv), ("x", gx)):
+            if g is None:
+                continue
+            bad = ~torch.isfinite(g)
+            if bad.any():
+                first = tuple(int(i) for i in bad.nonzero()[0][: len(c.batch_shape)])
+                c.fail(
+                    f"the gradient of {name} with respect to {wrt} has {int(bad.sum())} "
+                    f"non-finite entries; the first at batch index {first}: "
+                    f"v = {format_tensor(v[first])}, x = {format_tensor(x[first])}, "
+                    f"grad = {format_tensor(g[first])}"
+                )
+    c.result.worst_what = "all gradients finite"
+
+
+def _generic_tangents(group: LieGroup, n: int, gen: torch.Generator) -> torch.Tensor:
+    """``(n, tangent_dim)`` in float64: angles in [0.2, pi - 0.2], other coordinates ~1."""
+    v = torch.randn(n, group.tangent_dim, generator=gen, dtype=torch.float64)
+    for s in group.angle_slices:
+        theta = 0.2 + (math.pi - 0.4) * torch.rand(n, 1, generator=gen, dtype=torch.float64)
+        v[:, s] = v[:, s] / torch.linalg.vector_norm(v[:, s], dim=-1, keepdim=True) * theta
+    return v
+
+
+def gradcheck(c: Case, data) -> None:
+    """``torch.autograd.gradcheck`` in float64 at generic points (skipped in other dtypes)."""
+    G, bs = c.group, c.batch_shape
+    if c.dtype != torch.float64:
+        c.result.skipped = "gradcheck runs in float64 only"
+        return
+    gen = torch.Generator().manual_seed(1234)
+    n = math.prod(bs)
+    v = _generic_tangents(G, n, gen).reshape(*bs, G.tangent_dim).requires_grad_(True)
+    x = G.random(bs, generator=gen, dtype=torch.float64).requires_grad_(True)
+    checks = {
+        "exp(v)": (lambda v_: G.exp(v_), (v,)),
+        "log(exp(v))": (lambda v_: G.log(G.exp(v_)), (v,)),
+        "embed(rplus(x, v))": (lambda x_, v_: G.embed(G.rplus(x_, v_)), (x, v)),
+    }
+    first = tuple(0 for _ in bs)
+    for name, (fn, args) in checks.items():
+        # the full Jacobian of one element, and a random projection (fast mode) of the batch
+        runs = [(tuple(a[first].detach().requires_grad_(True) for a in args), False)]
+        if n > 1:
+            runs.append((args, True))
+        for inputs, fast in runs:
+            try:
+                torch.autograd.gradcheck(fn, inputs, eps=1e-6, atol=1e-6, rtol=1e-5,
+                                         fast_mode=fast)
+            except torch.autograd.gradcheck.GradcheckError as err:
+                c.fail(f"torch.autograd.gradcheck of {name} at v = "
+                       f"{format_tensor(inputs[-1])}:\n{err}")
+    c.result.worst_what = "gradcheck passed (eps 1e-6, atol 1e-6, rtol 1e-5)"
+
+
+def batched_vs_looped(c: Case, data) -> None:
+    """Batched operations equal the same operations applied element by element."""
+    G, bs = c.group, c.batch_shape
+    x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
+    ne = len(G.element_shape)
+    # name -> (operation, number of trailing dimensions of its output)
+    ops: dict[str, tuple[Callable[..., torch.Tensor], int]] = {
+        "compose(x, y)": (lambda x_, y_, v_: G.compose(x_, y_), ne),
+        "inverse(x)": (lambda x_, y_, v_: G.inverse(x_), ne),
+        "exp(v)": (lambda x_, y_, v_: G.exp(v_), ne),
+        "log(x)": (lambda x_, y_, v_: G.log(x_), 1),
+        "rplus(x, v)": (lambda x_, y_, v_: G.rplus(x_, v_), ne),
+        "rminus(y, x)": (lambda x_, y_, v_: G.rminus(y_, x_), 1),
+        "embed(x)": (lambda x_, y_, v_: G.embed(x_), 1),
+        "adjoint(x)": (lambda x_, y_, v_: G.adjoint(x_), 2),
+    }
+    n = math.prod(bs)
+    xs = x.reshape(n, *G.element_shape)
+    ys = y.reshape(n, *G.element_shape)
+    vs = v.reshape(n, G.tangent_dim)
+    # every element of a drawn batch; 12 spread-out elements of the (large) grid
+    idx = list(range(n)) if not c.grid else list(range(0, n, max(1, n // 12)))
+    scale = element_magnitude(G, x) * element_magnitude(G, y) * magnitude(v, 1)
+    scale = scale.reshape(n)[idx]
+    for name, (fn, trailing) in ops.items():
+        batched = fn(x, y, v)
+        looped = torch.stack([fn(xs[i], ys[i], vs[i]) for i in idx])
+        picked = batched.reshape(n, *batched.shape[len(bs):])[idx]
+        c.close(f"batched {name} == per-element {name}", picked, looped, trailing=trailing,
+                scale=scale, inputs={"x": xs[idx], "y": ys[idx], "v": vs[idx]})
+
+
+def broadcasting(c: Case, data) -> None:
+    """compose and rplus broadcast ``(3, 1)`` with ``(1, 2)``, and ``()`` with the batch."""
+    G, ne = c.group, len(c.group.element_shape)
+    el = tuple(G.element_shape)
+    x = c.x(data, "x (3, 1)", batch_shape=(3, 1))
+    y = c.x(data, "y (1, 2)", batch_shape=(1, 2))
+    v = c.v(data, "v (1, 2)", batch_shape=(1, 2))
+    xe, ye, ve = x.expand(3, 2, *el), y.expand(3, 2, *el), v.expand(3, 2, G.tangent_dim)
+    s = element_magnitude(G, xe) * element_magnitude(G, ye)
+    out = G.compose(x, y)
+    c.shape("compose(x (3, 1), y (1, 2))", out, el, batch=(3, 2))
+    c.close("compose broadcast (3, 1) x (1, 2)", out, G.compose(xe, ye), trailing=ne, scale=s)
+    out = G.rplus(x, v)
+    c.shape("rplus(x (3, 1), v (1, 2))", out, el, batch=(3, 2))
+    c.close("rplus broadcast (3, 1) x (1, 2)", out, G.rplus(xe, ve), trailing=ne,
+            scale=s * magnitude(ve, 1))
+    # an unbatched element against a batch of the case's shape
+    x0, yb = c.x(data, "x ()", batch_shape=()), c.x(data, "y")
+    out = G.compose(x0, yb)
+    c.shape("compose(x (), y batch)", out, el)
+    x0e = x0.expand(*c.batch_shape, *el)
+    c.close("compose broadcast () x batch", out, G.compose(x0e, yb), trailing=ne,
+            scale=element_magnitude(G, x0e) * element_magnitude(G, yb))
+
+
+#: Every property, by name, in the order ``check_group`` runs them.
+PROPERTIES: dict[str, Callable[[Case, object], None]] = {
+    "membership": membership,
+    "identity": identity,
+    "inverse": inverse,
+    "associativity": associativity,
+    "exp_log": exp_log,
+    "log_exp": log_exp,
+    "matrix_exp": matrix_exp,
+    "adjoint": adjoint,
+    "embedding": embedding,
+    "rplus_rminus": rplus_rminus,
+    "gradients_finite": gradients_finite,
+    "gradcheck": gradcheck,
+    "batched_vs_looped": batched_vs_looped,
+    "broadcasting": broadcasting,
+}
+
+#: Properties that draw nothing: they run once, at fixed generic points, not on the grid or on
+#: hypothesis' examples.
+DETERMINISTIC = frozenset({"gradcheck"})
