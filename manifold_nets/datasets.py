@@ -1,4 +1,4 @@
-"""The datasets of a run: simulated from a config and cached by its hash, mixed, or read from a file.
+"""The datasets of a run: simulated from a config and cached by hash, mixed, or read from a file.
 
 :mod:`manifold_nets.data` is the dataset type and its file format; this module makes and finds
 the datasets a run needs::

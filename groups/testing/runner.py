@@ -1,6 +1,6 @@
 """Running the axioms: one public ``check_*`` per property, and :func:`check_group` over them all.
 
-Every ``check_*(group, dtype, batch_shape, *, max_examples, magnitudes, derandomize, grid)`` runs
+Every ``check_*(group, dtype, batch_shape, **options)`` (options: :func:`run_property`) runs
 its property in one ``dtype``: first (if ``grid``) once on the deterministic adversarial batch of
 ``GRID_SIZE`` elements (every adversarial angle with every magnitude), then on ``max_examples``
 hypothesis examples of shape ``batch_shape`` (derandomized by default, so CI is reproducible). It
@@ -69,15 +69,17 @@ def run_property(
     prop: str,
     group: LieGroup,
     *,
-    dtype: torch.dtype,
-    batch_shape: Sequence[int],
-    max_examples: int,
-    magnitudes: Sequence[float],
-    derandomize: bool,
-    grid: bool,
+    dtype: torch.dtype = torch.float64,
+    batch_shape: Sequence[int] = (),
+    max_examples: int = DEFAULT_MAX_EXAMPLES,
+    magnitudes: Sequence[float] = MAGNITUDES,
+    derandomize: bool = True,
+    grid: bool = True,
 ) -> CheckResult:
     """Runs property ``prop`` (a name in :data:`~groups.testing.properties.PROPERTIES`) as the
-    module docstring describes; what every ``check_*`` calls."""
+    module docstring describes; what every ``check_*`` calls, with its ``**options``:
+    ``max_examples`` (hypothesis examples), ``magnitudes`` (tangent-vector scales),
+    ``derandomize`` (reproducible examples) and ``grid`` (the adversarial batch first)."""
     if not isinstance(group, LieGroup):
         raise TypeError(f"check_{prop} needs a LieGroup instance, got {group!r}.")
     bs = tuple(int(b) for b in batch_shape)
@@ -118,253 +120,113 @@ def run_property(
 
 
 def check_membership(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """Outputs of identity, compose, inverse, exp, rplus, between and random are on the group
     (within ``TOLERANCES[dtype].member``), every output has its documented shape and dtype, and
     no operation modifies its inputs."""
-    return run_property(
-        "membership", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("membership", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_identity(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``e x = x e = x``, ``e^-1 = e``, ``exp(0) = e``, ``log(e) = 0``, ``rminus(x, x) = 0``."""
-    return run_property(
-        "identity", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("identity", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_inverse(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``x x^-1 = x^-1 x = e``, ``(x^-1)^-1 = x``, ``(x y)^-1 = y^-1 x^-1``."""
-    return run_property(
-        "inverse", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("inverse", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_associativity(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``(x y) z = x (y z)``."""
-    return run_property(
-        "associativity", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("associativity", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_exp_log(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``exp(log(x)) = x`` for every element, angle pi included."""
-    return run_property(
-        "exp_log", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("exp_log", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_log_exp(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``log(exp(v)) = v`` where every angle is below ``pi - pi_margin`` (tolerance grown by
     ``near_pi * eps / (pi - angle)``), and ``exp(log(exp(v))) = exp(v)`` everywhere."""
-    return run_property(
-        "log_exp", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("log_exp", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_matrix_exp(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """For a :class:`~groups.MatrixLieGroup`: ``exp(v)`` (in ``dtype``) against
     ``torch.linalg.matrix_exp(hat(v))`` in float64, and ``vee(hat(v)) = v``. Skipped otherwise."""
-    return run_property(
-        "matrix_exp", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("matrix_exp", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_adjoint(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``x exp(v) x^-1 = exp(Ad_x v)``, ``Ad_{xy} = Ad_x Ad_y`` and ``Ad_x Ad_{x^-1} = I``."""
-    return run_property(
-        "adjoint", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("adjoint", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_embedding(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``unembed(embed(x)) = x``, ``from_embedding(embed(x)) = x``, and ``from_embedding`` raises
     GroupMembershipError for NaN and (if ``embedding_dim > tangent_dim``) off the group. If the
     group declares ``embedding_is_flat``, ``embedding_dim`` is the number of entries of an
     element and ``embed(x)`` is ``x`` flattened row-major, exactly."""
-    return run_property(
-        "embedding", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("embedding", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_rplus_rminus(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``rplus = compose(x, exp(v))``, ``between``, ``rplus(x, rminus(y, x)) = y``,
     ``rminus(rplus(x, v), x) = v`` inside the injectivity radius, and ``distance``."""
-    return run_property(
-        "rplus_rminus", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("rplus_rminus", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_gradients_finite(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """No NaN/Inf in the gradients of ``sum(exp(v))``, ``sum(log(exp(v)))`` and
     ``sum(embed(rplus(x, v)))``, at drawn points and at angles of exactly 0 and pi."""
-    return run_property(
-        "gradients_finite", group, dtype=dtype, batch_shape=batch_shape,
-        max_examples=max_examples, magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("gradients_finite", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_gradcheck(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """``torch.autograd.gradcheck`` of ``exp``, ``log(exp(v))`` and ``embed(rplus(x, v))`` at
     generic points in float64 (skipped for other dtypes). Draws nothing: it runs once, at fixed
     points, whatever ``max_examples`` and ``grid`` say."""
-    return run_property(
-        "gradcheck", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("gradcheck", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_batched_vs_looped(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """Batched compose, inverse, exp, log, rplus, rminus, embed and adjoint equal the
     per-element results."""
-    return run_property(
-        "batched_vs_looped", group, dtype=dtype, batch_shape=batch_shape,
-        max_examples=max_examples, magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("batched_vs_looped", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 def check_broadcasting(
-    group: LieGroup,
-    dtype: torch.dtype = torch.float64,
-    batch_shape: Sequence[int] = (),
-    *,
-    max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
-    derandomize: bool = True,
-    grid: bool = True,
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
     """compose and rplus broadcast batch shapes (3, 1) with (1, 2), and () with ``batch_shape``."""
-    return run_property(
-        "broadcasting", group, dtype=dtype, batch_shape=batch_shape, max_examples=max_examples,
-        magnitudes=magnitudes, derandomize=derandomize, grid=grid,
-    )  # fmt: skip
+    return run_property("broadcasting", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
 #: Every check of :func:`check_group`, by property name, in the order it runs them.
