@@ -9,8 +9,12 @@ import os
 import time
 
 import torch
-from examples.rigid_body import RigidBody
-from examples.rigid_body.filters import ComplementaryFilter, RigidBodyEKF, tune_complementary_gains
+from manifold_nets_examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body.filters import (
+    ComplementaryFilter,
+    RigidBodyEKF,
+    tune_complementary_gains,
+)
 from groups import SO3
 from manifold_nets.baselines import DeadReckoning, RawMeasurement
 

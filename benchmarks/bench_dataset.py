@@ -33,8 +33,12 @@ import scipy  # noqa: E402
 import torch  # noqa: E402
 from scipy.integrate import solve_ivp  # noqa: E402
 
-from examples.rigid_body import RigidBody  # noqa: E402
-from examples.rigid_body.kinematics import _rhs, exact_rollout, rk45_rollout  # noqa: E402
+from manifold_nets_examples.rigid_body import RigidBody  # noqa: E402
+from manifold_nets_examples.rigid_body.kinematics import (  # noqa: E402
+    _rhs,
+    exact_rollout,
+    rk45_rollout,
+)
 from manifold_nets.data import save_dataset  # noqa: E402
 from manifold_nets.datasets import make_dataset  # noqa: E402
 

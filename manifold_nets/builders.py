@@ -45,9 +45,22 @@ def torch_dtype(name: str, key: str) -> torch.dtype:
 def build_system(system_cfg: Any) -> System:
     """The system of a ``system`` config (``_target_`` and its parameters), checked to be a
     :class:`~manifold_nets.system.System`."""
+    from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
-    system = instantiate(system_cfg)
+    try:
+        system = instantiate(system_cfg)
+    except InstantiationException as err:
+        if not isinstance(err.__cause__, ImportError):
+            raise
+        target = system_cfg.get("_target_") if hasattr(system_cfg, "get") else None
+        cause = " ".join(str(err.__cause__).split())
+        raise ValueError(
+            f"system._target_={target!r} could not be imported ({cause}). The module of "
+            "your system must be importable: run the command from the folder that holds it "
+            "with `python -m manifold_nets.cli.<command>` (Python puts that folder on sys.path), "
+            "or set PYTHONPATH (`PYTHONPATH=. mn-train ...`); see docs/your_own_project.md."
+        ) from None
     if not isinstance(system, System):
         raise TypeError(
             f"the configured system {type(system).__name__} is not a manifold_nets.System; "

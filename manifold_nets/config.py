@@ -200,7 +200,7 @@ class MethodConfig:
 class RunConfig:
     """The whole run: ``system`` x ``dataset`` x ``model`` x ``train`` x ``eval`` x ``method``, a seed."""
 
-    #: The system: ``_target_`` (e.g. ``examples.rigid_body.system.RigidBody``) and its parameters.
+    #: The system: ``_target_`` (``manifold_nets_examples.rigid_body.RigidBody``) and parameters.
     system: Any = MISSING
     dataset: DatasetConfig = field(default_factory=DatasetConfig)
     #: Train on this dataset file (written by ``save_dataset``, with ``train``/``val`` splits)

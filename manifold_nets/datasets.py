@@ -4,7 +4,7 @@
 the datasets a run needs::
 
     from manifold_nets import DatasetConfig, load_or_generate, make_dataset
-    from examples.rigid_body import RigidBody
+    from manifold_nets_examples.rigid_body import RigidBody
 
     ds = make_dataset(RigidBody(), num_sequences=100, length=50, sigma=0.1, seed=0)
     parts = load_or_generate(RigidBody(), DatasetConfig(num_sequences=2000, length=50))

@@ -15,10 +15,10 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from scipy.integrate import solve_ivp
 
-from examples.attitude import Attitude
-from examples.attitude.filters import AttitudeEKF
-from examples.attitude.motion import random_sinusoids
-from examples.attitude.triad import triad
+from manifold_nets_examples.attitude import Attitude
+from manifold_nets_examples.attitude.filters import AttitudeEKF
+from manifold_nets_examples.attitude.motion import random_sinusoids
+from manifold_nets_examples.attitude.triad import triad
 from groups import SO3
 from manifold_nets.data import load_dataset
 from manifold_nets import DatasetConfig, load_or_generate, make_dataset
@@ -251,7 +251,7 @@ def test_ekf_is_consistent_stays_on_the_group_and_beats_triad():
 
 
 def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
-    from examples.attitude.compare import attitude_estimators, compare_run, load_run
+    from manifold_nets_examples.attitude.compare import attitude_estimators, compare_run, load_run
     from manifold_nets.evaluation import rollout
     from manifold_nets.cli.train import run
 
@@ -261,7 +261,7 @@ def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
     ]
     with initialize_config_dir(config_dir=CONFIGS, version_base="1.3"):
         cfg = compose("train", overrides=tiny)
-    assert cfg.system._target_ == "examples.attitude.system.Attitude"
+    assert cfg.system._target_ == "manifold_nets_examples.attitude.system.Attitude"
     (row,) = run(cfg, tmp_path / "run")["table"]
     assert {"R est", "R meas", "b_omega est", "attitude_deg est", "attitude_deg meas"} <= set(row)
     assert row["membership max"] < 1e-12

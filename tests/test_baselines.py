@@ -6,8 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from examples.rigid_body import RigidBody
-from examples.rigid_body.filters import (
+from manifold_nets_examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body.filters import (
     ComplementaryFilter,
     ComplementaryGains,
     RigidBodyEKF,

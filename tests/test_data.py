@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body import RigidBody
 from groups import GroupMembershipError
 from manifold_nets import data as data_mod
 from manifold_nets.data import (

@@ -9,8 +9,8 @@ import math
 import pytest
 import torch
 
-from examples.rigid_body import RigidBody
-from examples.rigid_body.filters import (
+from manifold_nets_examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body.filters import (
     RigidBodyEKF,
     RigidBodyFilterModel,
     initialize_from_measurements,

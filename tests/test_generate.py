@@ -16,7 +16,7 @@ from hydra.errors import ConfigCompositionException
 from hydra.utils import instantiate
 from omegaconf import OmegaConf
 
-from examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body import RigidBody
 from groups import SO3
 from manifold_nets import datasets as gen_mod
 from manifold_nets.system import System

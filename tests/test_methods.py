@@ -10,7 +10,7 @@ import torch
 from omegaconf import OmegaConf
 from test_configs import CONFIGS, _compose, _tiny
 
-from examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body import RigidBody
 from groups import SE3, SO3, Euclidean, Product
 from manifold_nets import results
 from manifold_nets.cli import compare
@@ -77,7 +77,7 @@ def test_a_user_factory_with_params_and_label(tmp_path):
         *_tiny(
             tmp_path / "data",
             "method.name=ekf_autograd",
-            "method.target=examples.rigid_body.filters.RigidBodyEKF",
+            "method.target=manifold_nets_examples.rigid_body.filters.RigidBodyEKF",
             "+method.params.jacobians=autograd",
             "method.label=ekf_autograd",
             "eval.plots=false",
@@ -239,7 +239,7 @@ def test_comparison_refuses_runs_on_different_sets(tmp_path, capsys):
 
 
 def test_the_rigid_body_filters_refuse_the_se3_layout():
-    from examples.rigid_body.filters import ComplementaryFilter, RigidBodyEKF
+    from manifold_nets_examples.rigid_body.filters import ComplementaryFilter, RigidBodyEKF
 
     se3 = RigidBody(pose_group="se3")
     assert set(se3.estimators()) == {"raw", "dead_reckoning"}

@@ -16,9 +16,9 @@ from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from scipy.integrate import solve_ivp
 
-from examples.planar import Planar
-from examples.planar.filters import PlanarEKF
-from examples.planar.system import course_over_ground
+from manifold_nets_examples.planar import Planar
+from manifold_nets_examples.planar.filters import PlanarEKF
+from manifold_nets_examples.planar.system import course_over_ground
 from groups import SE2, SO2
 from manifold_nets.data import load_dataset
 from manifold_nets import DatasetConfig, load_or_generate, make_dataset
@@ -262,8 +262,8 @@ def test_ekf_is_consistent_stays_on_the_group_and_beats_the_raw_fixes(pose_group
 
 
 def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
-    from examples.attitude.compare import compare_run, load_run
-    from examples.planar.compare import planar_estimators
+    from manifold_nets_examples.attitude.compare import compare_run, load_run
+    from manifold_nets_examples.planar.compare import planar_estimators
     from manifold_nets.evaluation import rollout
     from manifold_nets.cli.train import run
 

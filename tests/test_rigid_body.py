@@ -12,8 +12,13 @@ import pytest
 import torch
 from scipy.integrate import quad
 
-from examples.rigid_body import RigidBody
-from examples.rigid_body.kinematics import exact_rollout, exact_step, increments, rk45_rollout
+from manifold_nets_examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body.kinematics import (
+    exact_rollout,
+    exact_step,
+    increments,
+    rk45_rollout,
+)
 from groups import SO3
 from groups.so3 import left_jacobian, left_jacobian_inverse
 

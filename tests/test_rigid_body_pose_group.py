@@ -8,8 +8,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from examples.rigid_body import RigidBody
-from examples.rigid_body.system import POSE_GROUPS
+from manifold_nets_examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body.system import POSE_GROUPS
 from groups import SE3, SO3
 from manifold_nets.datasets import dataset_path
 from manifold_nets.observer import ResidualObserver

@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import torch
 
-from examples.attitude import Attitude
-from examples.planar import Planar
-from examples.rigid_body import RigidBody
+from manifold_nets_examples.attitude import Attitude
+from manifold_nets_examples.planar import Planar
+from manifold_nets_examples.rigid_body import RigidBody
 from manifold_nets.system import System
 from manifold_nets.testing import CHECKS, check_rollout_matches_step, check_system
 

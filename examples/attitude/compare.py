@@ -1,8 +1,8 @@
 """The learned observer next to classical estimators, on the same inference sets, for any system.
 
-    python -m examples.attitude.compare outputs/attitude/<run id>            # the AHRS
-    python -m examples.planar.compare outputs/planar/<run id>                # the vehicle
-    python -m examples.attitude.compare <run> --sigmas 0.3 --length 500 --tag long  # other sets
+    python -m manifold_nets_examples.attitude.compare outputs/attitude/<run id>  # the AHRS
+    python -m manifold_nets_examples.planar.compare outputs/planar/<run id>      # the vehicle
+    python -m manifold_nets_examples.attitude.compare <run> --sigmas 0.3 --length 500 --tag long
 
 A training run folder (``python -m manifold_nets.cli.train``) holds its resolved ``config.yaml`` and
 ``checkpoints/best.pt``. :func:`compare_run` rebuilds the system and the observer from them,

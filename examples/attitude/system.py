@@ -9,9 +9,9 @@ Dynamics (``dR/dt = R [Omega]x`` with the body rate ``Omega_k`` held over the st
     R_{k+1} = R_k exp(Omega_k dt),        b_{k+1} = b_k      (a constant turn-on bias)
 
 The drive is the true body rate ``w_k = Omega_k`` (``drive_dim = 3``), a smooth random profile
-(:mod:`examples.attitude.motion`): per sequence and axis a sum of ``num_terms`` random
-sinusoids with frequencies in ``[freq_min, freq_max]`` Hz and root mean square ``omega_rms``
-rad/s, sampled at ``t_k = k dt``.
+(:mod:`manifold_nets_examples.attitude.motion`): per sequence and axis a sum of ``num_terms``
+random sinusoids with frequencies in ``[freq_min, freq_max]`` Hz and root mean square
+``omega_rms`` rad/s, sampled at ``t_k = k dt``.
 
 Measurement ``y_{k+1}`` in ``R^9``: two known world directions seen in the body frame, and the
 gyro reading applied over the step ``k -> k+1`` (the paper's pairing of velocity readings)::
@@ -34,8 +34,8 @@ an uncalibrated consumer MEMS gyroscope's zero-rate offset), one draw per sequen
 ``dt = 0.1`` s.
 
 Raw baseline (:meth:`Attitude.measurement_errors`, :meth:`Attitude.state_from_measurement`):
-TRIAD (:mod:`examples.attitude.triad`) from the two measured directions, gravity first. Dead
-reckoning reads the drive as the biased gyro (:meth:`Attitude.drive_from_measurement`).
+TRIAD (:mod:`manifold_nets_examples.attitude.triad`) from the two measured directions, gravity
+first. Dead reckoning reads the drive as the biased gyro (:meth:`Attitude.drive_from_measurement`).
 """
 
 from __future__ import annotations

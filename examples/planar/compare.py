@@ -1,15 +1,15 @@
 """The learned observer next to the vehicle's EKF, dead reckoning and the raw fixes.
 
-    python -m examples.planar.compare outputs/planar/<run id> [--sigmas 0.1 0.2] [--length 200]
+    python -m manifold_nets_examples.planar.compare outputs/planar/<id> [--sigmas 0.1] [--length N]
 
-The comparison itself is generic (:func:`examples.attitude.compare.compare_run`); this module
-only names the vehicle's classical estimators. Writes ``results/compare.{csv,md}`` and
+The comparison itself is generic (:func:`manifold_nets_examples.attitude.compare.compare_run`);
+this module only names the vehicle's classical estimators. Writes ``results/compare.{csv,md}`` and
 ``results/compare_sigma<s>.png`` into the run folder.
 """
 
 from __future__ import annotations
 
-from examples.attitude.compare import main
+from manifold_nets_examples.attitude.compare import main
 
 __all__ = ["planar_estimators"]
 

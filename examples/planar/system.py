@@ -22,8 +22,8 @@ body twist ``(v, 0, omega)`` of SE(2), so the step is exact::
     T_{k+1} = T_k exp((v_k dt, 0, omega_k dt)),        b_{k+1} = b_k    (constant turn-on biases)
 
 The drive is ``w_k = (v_k, omega_k)`` (``drive_dim = 2``), smooth random profiles
-(:mod:`examples.attitude.motion`, sums of random sinusoids ``s(t)``): the vehicle always drives
-forward, ``v = v_mean exp(s_v(t))`` with a per-sequence cruising speed
+(:mod:`manifold_nets_examples.attitude.motion`, sums of random sinusoids ``s(t)``): the vehicle
+always drives forward, ``v = v_mean exp(s_v(t))`` with a per-sequence cruising speed
 ``v_mean ~ U[speed_min, speed_max]`` and a relative variation ``s_v`` of root mean square
 ``speed_variation`` (0.2: about +-20 %); ``omega = s_omega(t)`` of root mean square
 ``turn_rate_rms``; both with ``num_terms`` sinusoids of frequencies in ``[freq_min, freq_max]``
@@ -57,7 +57,7 @@ import math
 
 import torch
 
-from examples.attitude.motion import check_frequencies, random_sinusoids
+from manifold_nets_examples.attitude.motion import check_frequencies, random_sinusoids
 from groups import SE2, SO2, Euclidean, Product
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.system import System, check_last_dim, check_number

@@ -20,5 +20,7 @@ import os
 # user wins.
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
-#: Where the hydra commands find their configs (the repository's ``configs/``).
-CONFIG_PATH = "../../configs"
+#: Where the hydra commands find their primary configs: the repository's ``configs/``, installed as
+#: the package ``manifold_nets_configs``, so the commands run from any folder. A user's own configs
+#: join with ``--config-dir`` (docs/your_own_project.md).
+CONFIG_PATH = "pkg://manifold_nets_configs"
