@@ -214,6 +214,11 @@ class RunConfig:
     seed: int = 0
     #: Experiment name: the first level of the output folders.
     name: str = "default"
+    #: The number the commands return to a hydra sweeper (Optuna minimises or maximises it):
+    #: ``best_val_loss`` (the best epoch's validation loss), ``test_loss``, a metric column of
+    #: the results table averaged over ``eval.sigmas`` (``R est``, ``R reduction %``, ...), or a
+    #: column at one sigma, ``R est@0.1`` (:mod:`manifold_nets.objective`, docs/sweeps.md).
+    objective: str = "best_val_loss"
 
 
 def _run_id() -> str:

@@ -145,10 +145,11 @@ def evaluate(
     return metrics
 
 
-def _hydra_main(cfg: DictConfig) -> None:
+def _hydra_main(cfg: DictConfig) -> float | None:
+    """Evaluates and returns the run's objective (``objective=``, e.g. ``'R est'``) to a sweeper."""
     from hydra.core.hydra_config import HydraConfig
 
-    from .train import run
+    from .train import run, sweeper_reads_the_objective
 
     if cfg.method.name == "learned" and not cfg.method.target and not cfg.eval.checkpoint:
         raise ValueError(
@@ -156,7 +157,8 @@ def _hydra_main(cfg: DictConfig) -> None:
             "method=learned, or pick a baseline (method=ekf, raw, ...); to train, use "
             "manifold_nets.cli.train."
         )
-    run(cfg, HydraConfig.get().runtime.output_dir)
+    required = sweeper_reads_the_objective(cfg)
+    return run(cfg, HydraConfig.get().runtime.output_dir, objective_required=required)["objective"]
 
 
 def main() -> None:

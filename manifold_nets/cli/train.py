@@ -20,6 +20,17 @@ holds ``config.yaml`` (resolved), ``log.csv``/``log.json`` (per epoch), ``checkp
 and ``last.pt``, and ``results/`` (see the evaluation command). Interrupted? Resume with
 ``train.resume=<run folder>``.
 
+The hydra entry returns the run's objective (``objective=``: ``best_val_loss`` by default,
+``test_loss``, or a table column such as ``'R est'`` or ``'R est@0.1'``; see
+:mod:`manifold_nets.objective`) as a float, which hydra's Optuna sweeper optimises::
+
+    python -m manifold_nets.cli.train -m hydra/sweeper=optuna hydra.sweeper.n_trials=20 \
+        experiment=default 'train.lr=interval(1e-4,1e-2)'
+
+A run with no loss to return (a baseline under the default objective) returns ``None``, unless
+a sweeper that reads the value runs it: then it fails before any work. docs/sweeps.md has the
+launchers (joblib, submitit) and the search.
+
 :func:`run` does the work of one composed config (what tests call); :func:`train` is the
 training task alone.
 """
@@ -41,12 +52,13 @@ from manifold_nets.builders import LEARNED_METHODS, build_observer, build_system
 from manifold_nets.checkpoint import load_checkpoint, load_weights
 from manifold_nets.config import RunConfig
 from manifold_nets.datasets import training_data
+from manifold_nets.objective import objective_value, parse_objective
 from manifold_nets.training import check_settings, fit, validation_loss
 
 from . import CONFIG_PATH
 from .evaluate import absolute, check_sigmas, evaluate
 
-__all__ = ["check_config", "main", "run", "train"]
+__all__ = ["check_config", "main", "run", "sweeper_reads_the_objective", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -66,10 +78,18 @@ def check_config(cfg: DictConfig) -> None:
         ) from None
 
 
-def _check_before_work(cfg: DictConfig) -> None:
-    """Every check that needs no work: the schema, the sigmas, the training settings."""
+def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> None:
+    """Every check that needs no work: the schema, the sigmas, the objective, the training
+    settings."""
     check_config(cfg)
     check_sigmas(cfg.eval.sigmas)
+    objective = parse_objective(cfg.objective, cfg.eval.sigmas)
+    missing = _no_loss_to_return(cfg) if objective.is_loss else None
+    if objective_required and missing:
+        raise ValueError(
+            f"objective={cfg.objective!r}: the sweeper needs a value, but {missing}; choose a "
+            "metric column of the results table instead, e.g. objective='R est' (docs/sweeps.md)."
+        )
     try:
         check_settings(OmegaConf.to_object(cfg.train))
     except ValueError as err:  # the library names its parameter first: name the config key
@@ -85,6 +105,18 @@ def _check_before_work(cfg: DictConfig) -> None:
             "method=untrained evaluates the observer at its initialisation; it cannot load "
             f"eval.checkpoint={cfg.eval.checkpoint!r} (use method=learned for that)."
         )
+
+
+def _no_loss_to_return(cfg: DictConfig) -> str | None:
+    """Why the run will have no ``cfg.objective`` loss to return (``None``: it will have one)."""
+    learned = cfg.method.name == "learned" and not cfg.method.target
+    if not learned:
+        return f"method={cfg.method.name} does not train, so it has no {cfg.objective}"
+    if cfg.objective == "test_loss" and cfg.eval.checkpoint:
+        return "a run that evaluates eval.checkpoint does not train, so it has no test_loss"
+    if cfg.objective == "test_loss" and not cfg.eval.test_split:
+        return "eval.test_split=false: the test loss is not computed"
+    return None
 
 
 def train(cfg: DictConfig, system, model, out_dir: Path) -> dict[str, Any]:
@@ -134,10 +166,12 @@ def train(cfg: DictConfig, system, model, out_dir: Path) -> dict[str, Any]:
     return info
 
 
-def run(cfg: DictConfig, out_dir: str | Path) -> dict:
+def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = False) -> dict:
     """Runs one experiment into ``out_dir``: training (when the method learns and no
-    ``eval.checkpoint`` is given), then the evaluation. Returns the metrics."""
-    _check_before_work(cfg)
+    ``eval.checkpoint`` is given), then the evaluation. Returns the metrics, with
+    ``metrics["objective"]`` the value of ``cfg.objective`` (``None`` when the run has no such
+    loss and ``objective_required`` is false; with it true that fails before any work)."""
+    _check_before_work(cfg, objective_required)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = OmegaConf.to_container(cfg, resolve=True)
@@ -156,13 +190,43 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
         log.info("observer: %s, %d parameters", model.signature(), n_params)
         if cfg.method.name == "learned" and not cfg.eval.checkpoint:
             info = train(cfg, system, model, out_dir)
-    return evaluate(cfg, system, out_dir, model=model, info=info)
+    metrics = evaluate(cfg, system, out_dir, model=model, info=info)
+    metrics["objective"] = None
+    if not (parse_objective(cfg.objective).is_loss and _no_loss_to_return(cfg)):
+        metrics["objective"] = objective_value(cfg.objective, metrics)
+        log.info("objective %s = %.6g", cfg.objective, metrics["objective"])
+    return metrics
 
 
-def _hydra_main(cfg: DictConfig) -> None:
+def sweeper_reads_the_objective(cfg: DictConfig) -> bool:
+    """Whether this hydra job runs under a sweeper that reads its return value (Optuna, ...):
+    a multirun whose sweeper is not hydra's basic one, which ignores the value. Warns when the
+    sweeper's ``direction`` goes against the objective (minimising a ``reduction %``)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    hc = HydraConfig.get()
+    target = str(OmegaConf.select(hc, "sweeper._target_", default="") or "")
+    direction = OmegaConf.select(hc, "sweeper.direction", default=None)
+    direction = getattr(direction, "name", direction)  # the Optuna sweeper's enum, or a str
+    if isinstance(direction, str) and direction in ("minimize", "maximize"):
+        minimize = parse_objective(cfg.objective).minimize
+        if (direction == "minimize") != minimize:
+            log.warning(
+                "the sweeper will %s objective=%r, which is better %s: set "
+                "hydra.sweeper.direction=%s", direction,
+                cfg.objective, "smaller" if minimize else "larger",
+                "minimize" if minimize else "maximize",
+            )
+    return hc.mode == RunMode.MULTIRUN and not target.endswith(".BasicSweeper")
+
+
+def _hydra_main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 
-    run(cfg, HydraConfig.get().runtime.output_dir)
+    required = sweeper_reads_the_objective(cfg)
+    metrics = run(cfg, HydraConfig.get().runtime.output_dir, objective_required=required)
+    return metrics["objective"]
 
 
 def main() -> None:
