@@ -21,7 +21,8 @@ METRICS = {"best_val_loss": 0.5, "test_loss": 0.7, "table": ROWS}
 
 
 def _tiny(tmp_path: Path, *more: str):
-    overrides = ["experiment=default", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}", "eval.plots=false"]
+    cache = f"dataset.cache_dir={tmp_path / 'data'}"
+    overrides = ["experiment=default", "debug=tiny", cache, "eval.plots=false"]
     with initialize_config_dir(config_dir=str(CONFIGS), version_base="1.3"):
         return compose("train", overrides=[*overrides, *more])
 
@@ -33,7 +34,7 @@ def _tiny(tmp_path: Path, *more: str):
         ("test_loss", Objective("test_loss")),
         ("R est", Objective("R est", "R est")),
         ("R est@0.1", Objective("R est@0.1", "R est", 0.1)),
-        ("b_omega reduction % @ 0.3", Objective("b_omega reduction % @ 0.3", "b_omega reduction %", 0.3)),
+        ("b_v reduction % @ 0.3", Objective("b_v reduction % @ 0.3", "b_v reduction %", 0.3)),
         ("membership max", Objective("membership max", "membership max")),
         ("us/step", Objective("us/step", "us/step")),
     ],
