@@ -149,6 +149,9 @@ class TrainSettings:
     init_from: Optional[str] = None
     #: Show a progress bar with the running loss (on a terminal).
     progress: bool = True
+    #: Write TensorBoard event files into ``<run folder>/tensorboard/``: losses and learning
+    #: rate per epoch, the evaluation's metrics (needs ``pip install 'manifold_nets[logging]'``).
+    tensorboard: bool = False
 
 
 @dataclass
@@ -170,6 +173,8 @@ class EvalConfig:
     plots: bool = True
     #: Also report the loss on the test split of the training data.
     test_split: bool = True
+    #: Show progress bars (sequences done, a filter's steps) on a terminal, for long evaluations.
+    progress: bool = True
 
 
 @dataclass

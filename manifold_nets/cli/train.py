@@ -17,8 +17,9 @@ goes through the same evaluation (:mod:`manifold_nets.cli.evaluate`).
 
 A run folder (``outputs/<name>/<date_time_pid>/``, or ``multirun/<name>/<date_time_pid>/<job>/``)
 holds ``config.yaml`` (resolved), ``log.csv``/``log.json`` (per epoch), ``checkpoints/best.pt``
-and ``last.pt``, and ``results/`` (see the evaluation command). Interrupted? Resume with
-``train.resume=<run folder>``.
+and ``last.pt``, ``results/`` (see the evaluation command), and with ``train.tensorboard=true``
+``tensorboard/`` (losses, learning rate, metrics: :mod:`manifold_nets.tensorboard_log`).
+Interrupted? Resume with ``train.resume=<run folder>``.
 
 The hydra entry returns the run's objective (``objective=``: ``best_val_loss`` by default,
 ``test_loss``, or a table column such as ``'R est'`` or ``'R est@0.1'``; see
@@ -53,7 +54,8 @@ from manifold_nets.checkpoint import load_checkpoint, load_weights
 from manifold_nets.config import RunConfig
 from manifold_nets.datasets import training_data
 from manifold_nets.objective import objective_value, parse_objective
-from manifold_nets.training import check_settings, fit, validation_loss
+from manifold_nets.tensorboard_log import TensorBoardLog, check_tensorboard
+from manifold_nets.training import EpochCallback, check_settings, fit, validation_loss
 
 from . import CONFIG_PATH
 from .evaluate import absolute, check_sigmas, evaluate
@@ -83,6 +85,8 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
     settings."""
     check_config(cfg)
     check_sigmas(cfg.eval.sigmas)
+    if cfg.train.tensorboard:
+        check_tensorboard()
     objective = parse_objective(cfg.objective, cfg.eval.sigmas)
     missing = _no_loss_to_return(cfg) if objective.is_loss else None
     if objective_required and missing:
@@ -119,10 +123,12 @@ def _no_loss_to_return(cfg: DictConfig) -> str | None:
     return None
 
 
-def train(cfg: DictConfig, system, model, out_dir: Path) -> dict[str, Any]:
+def train(
+    cfg: DictConfig, system, model, out_dir: Path, on_epoch: EpochCallback | None = None
+) -> dict[str, Any]:
     """The training task: data, fit, the best weights back into ``model``, the test loss.
 
-    Returns what the run's ``metrics.json`` records of it.
+    Returns what the run's ``metrics.json`` records of it; ``on_epoch`` goes to ``fit``.
     """
     t, info = cfg.train, {}
     if t.init_from:
@@ -149,7 +155,7 @@ def train(cfg: DictConfig, system, model, out_dir: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     result = fit(
         model, parts["train"], parts["val"], settings, out_dir=out_dir, seed=int(cfg.seed),
-        transform=noise, config=OmegaConf.to_container(cfg, resolve=True),
+        transform=noise, config=OmegaConf.to_container(cfg, resolve=True), on_epoch=on_epoch,
     )
     best = load_checkpoint(result.best_path, model.signature(), map_location=model.device)
     model.load_state_dict(best["model"])
@@ -178,6 +184,21 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     write_text_atomic(out_dir / "config.yaml", OmegaConf.to_yaml(resolved))
     if cfg.train.threads is not None:
         torch.set_num_threads(int(cfg.train.threads))
+    board = TensorBoardLog(out_dir / "tensorboard") if cfg.train.tensorboard else None
+    try:
+        metrics = _train_and_evaluate(cfg, out_dir, board)
+    finally:
+        if board is not None:
+            board.close()
+    metrics["objective"] = None
+    if not (parse_objective(cfg.objective).is_loss and _no_loss_to_return(cfg)):
+        metrics["objective"] = objective_value(cfg.objective, metrics)
+        log.info("objective %s = %.6g", cfg.objective, metrics["objective"])
+    return metrics
+
+
+def _train_and_evaluate(cfg: DictConfig, out_dir: Path, board: TensorBoardLog | None) -> dict:
+    """The system, the observer (for the learned methods), training, the evaluation."""
     device = resolve_device(cfg.train.device)
     system = build_system(cfg.system)
     model, info = None, {}
@@ -189,12 +210,13 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
         n_params = sum(p.numel() for p in model.parameters())
         log.info("observer: %s, %d parameters", model.signature(), n_params)
         if cfg.method.name == "learned" and not cfg.eval.checkpoint:
-            info = train(cfg, system, model, out_dir)
+            on_epoch = board.on_epoch if board is not None else None
+            info = train(cfg, system, model, out_dir, on_epoch=on_epoch)
     metrics = evaluate(cfg, system, out_dir, model=model, info=info)
-    metrics["objective"] = None
-    if not (parse_objective(cfg.objective).is_loss and _no_loss_to_return(cfg)):
-        metrics["objective"] = objective_value(cfg.objective, metrics)
-        log.info("objective %s = %.6g", cfg.objective, metrics["objective"])
+    if board is not None:
+        step = int(metrics.get("best_epoch") or 0)
+        board.results(metrics["table"], step=step, test_loss=metrics.get("test_loss"))
+        log.info("TensorBoard files in %s", board.log_dir)
     return metrics
 
 
