@@ -75,13 +75,15 @@ def _estimator(cfg: DictConfig, system, model: ResidualObserver | None, metrics:
                 best_val_loss=ckpt.get("best", {}).get("val_loss"),
             )
             log.info("evaluating %s (epoch %s)", path, ckpt["epoch"])
-        est = ObserverEstimator(model, label, cfg.train.eval_batch_size)
+        est = ObserverEstimator(model, label, cfg.train.eval_batch_size, cfg.eval.progress)
         return lambda sigma: est
     factory = build_estimator_factory(system, cfg.method)
     metrics["method_params"] = dict(cfg.method.params)
 
     def make(sigma: float):
         est = make_estimator(system, factory, sigma, **dict(cfg.method.params))
+        if isinstance(getattr(est, "progress", None), bool):  # a filter's bar over its steps
+            est.progress = bool(cfg.eval.progress)
         metrics.setdefault("estimators", {})[f"{sigma:g}"] = repr(est)
         return est
 
