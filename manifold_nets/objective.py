@@ -48,7 +48,8 @@ CHOICES = (
 
 @dataclass(frozen=True)
 class Objective:
-    """A parsed objective: a loss (``column is None``) or a table column, at ``sigma`` or averaged."""
+    """A parsed objective: a loss (``column is None``) or a table column, at ``sigma`` or the
+    mean over the sigmas."""
 
     name: str
     column: str | None = None
@@ -145,7 +146,9 @@ def _column_mean(obj: Objective, rows: list[Mapping]) -> float:
     if obj.sigma is not None:
         rows = [r for r in rows if math.isclose(float(r["sigma"]), obj.sigma)]
         if not rows:
-            raise ValueError(f"objective={obj.name!r}: no row of the table has sigma {obj.sigma:g}.")
+            raise ValueError(
+                f"objective={obj.name!r}: no row of the table has sigma {obj.sigma:g}."
+            )
     values = [r.get(obj.column) for r in rows]
     if any(v is None for v in values):
         return math.nan

@@ -80,7 +80,7 @@ def test_your_own_training_loop_over_a_dataloader_lowers_the_loss(system, ds):
     torch.manual_seed(0)
     model = build_observer(
         system.group, system.measurement_dim, system.input_dim,
-        ModelConfig(hidden_size=16, num_layers=1, updates={"b_omega": "absolute", "b_v": "absolute"}),
+        ModelConfig(hidden_size=16, num_layers=1),
     )  # fmt: skip
     opt = torch.optim.Adam(model.parameters(), lr=1e-2)
     loader = DataLoader(

@@ -78,7 +78,8 @@ def _count(outs: list[str], word: str) -> int:
 
 
 def _digests(outs: list[str]) -> set[str]:
-    return {line.split()[1] for out in outs for line in out.splitlines() if line.startswith("digest")}
+    lines = [line for out in outs for line in out.splitlines()]
+    return {line.split()[1] for line in lines if line.startswith("digest")}
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="file_lock needs fcntl (POSIX)")
