@@ -28,6 +28,7 @@ from .checkpoint import load_checkpoint, save_checkpoint
 from .config import DatasetConfig, ModelConfig, RunConfig, TrainSettings
 from .cores import GRUCore, RecurrentCore
 from .data import DatasetError, TrajectoryDataset, load_dataset, save_dataset
+from .data import collate_trajectories
 from .datasets import load_or_generate, make_dataset
 from .ekf import ErrorStateEKF
 from .evaluation import evaluate
@@ -43,6 +44,7 @@ __all__ = [
     "System",
     "TrajectoryDataset",
     "DatasetError",
+    "collate_trajectories",
     "load_dataset",
     "save_dataset",
     "make_dataset",

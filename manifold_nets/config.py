@@ -149,6 +149,9 @@ class TrainSettings:
     init_from: Optional[str] = None
     #: Show a progress bar with the running loss (on a terminal).
     progress: bool = True
+    #: Write TensorBoard event files into ``<run folder>/tensorboard/``: losses and learning
+    #: rate per epoch, the evaluation's metrics (needs ``pip install 'manifold_nets[logging]'``).
+    tensorboard: bool = False
 
 
 @dataclass
@@ -170,6 +173,8 @@ class EvalConfig:
     plots: bool = True
     #: Also report the loss on the test split of the training data.
     test_split: bool = True
+    #: Show progress bars (sequences done, a filter's steps) on a terminal, for long evaluations.
+    progress: bool = True
 
 
 @dataclass
@@ -214,6 +219,11 @@ class RunConfig:
     seed: int = 0
     #: Experiment name: the first level of the output folders.
     name: str = "default"
+    #: The number the commands return to a hydra sweeper (Optuna minimises or maximises it):
+    #: ``best_val_loss`` (the best epoch's validation loss), ``test_loss``, a metric column of
+    #: the results table averaged over ``eval.sigmas`` (``R est``, ``R reduction %``, ...), or a
+    #: column at one sigma, ``R est@0.1`` (:mod:`manifold_nets.objective`, docs/sweeps.md).
+    objective: str = "best_val_loss"
 
 
 def _run_id() -> str:

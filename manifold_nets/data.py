@@ -13,6 +13,11 @@ On disk (``save_dataset`` / ``load_dataset``) a dataset is one ``.npz`` file rea
 scalar ``format_version`` and ``meta`` as a JSON string. Files are written to a temporary name
 and renamed, so an interrupted write never leaves a half file; the zip entries carry a fixed
 timestamp, so the same dataset always gives the same bytes.
+
+A :class:`TrajectoryDataset` is a ``torch.utils.data.Dataset`` of sequences: ``ds[i]`` is the
+one-sequence dataset ``i`` and :func:`collate_trajectories` stacks such items back along ``N``,
+so ``DataLoader(ds, batch_size=B, shuffle=True, collate_fn=collate_trajectories)`` yields
+``TrajectoryDataset`` batches in the ``(B, T, ...)`` layout the observer reads.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ __all__ = [
     "FORMAT_VERSION",
     "DatasetError",
     "TrajectoryDataset",
+    "collate_trajectories",
     "save_dataset",
     "load_dataset",
     "split_ranges",
@@ -123,8 +129,12 @@ def split_ranges(num_sequences: int, fractions: Mapping[str, float]) -> dict[str
 
 
 @dataclass(eq=False)
-class TrajectoryDataset:
-    """``N`` trajectories of a system on a Lie group; see the module docstring for the shapes."""
+class TrajectoryDataset(torch.utils.data.Dataset):
+    """``N`` trajectories of a system on a Lie group; see the module docstring for the shapes.
+
+    A ``torch.utils.data.Dataset`` of ``N`` items, item ``i`` being the one-sequence dataset
+    ``ds[i]``; batch it with ``collate_fn=``:func:`collate_trajectories`.
+    """
 
     states: torch.Tensor
     measurements: torch.Tensor
@@ -248,6 +258,47 @@ class TrajectoryDataset:
             except GroupMembershipError as err:
                 raise GroupMembershipError(f"{where}: states are off the group. {err}") from None
         return self
+
+
+def collate_trajectories(batch) -> TrajectoryDataset:
+    """The datasets of ``batch`` (a sequence of :class:`TrajectoryDataset`, e.g. the one-sequence
+    items a ``DataLoader`` fetched) concatenated along ``N``: one dataset, ``(B, T+1, ...)``
+    states, ``(B, T, l)`` measurements, ``(B, T, m)`` inputs.
+
+    The ``collate_fn`` of a ``torch.utils.data.DataLoader`` over a dataset::
+
+        loader = DataLoader(ds, batch_size=64, shuffle=True, collate_fn=collate_trajectories)
+        for batch in loader:
+            est = observer(batch.measurements, batch.inputs)
+
+    ``meta`` is the first item's without ``splits`` (the ranges of a parent do not describe a
+    batch). All items must have the same length ``T``, element shape and sizes.
+    """
+    items = list(batch)
+    if not items:
+        raise DatasetError("collate_trajectories got an empty batch.")
+    for i, item in enumerate(items):
+        if not isinstance(item, TrajectoryDataset):
+            raise TypeError(
+                f"collate_trajectories collates TrajectoryDataset items; item {i} is a "
+                f"{type(item).__name__}."
+            )
+    first = items[0]
+    for i, item in enumerate(items[1:], 1):
+        for name in _ARRAYS:
+            a, b = getattr(first, name), getattr(item, name)
+            if a.shape[1:] != b.shape[1:]:
+                raise DatasetError(
+                    f"collate_trajectories: item {i} has {name} of shape {tuple(b.shape)}, item "
+                    f"0 {tuple(a.shape)}; a batch needs the same length and sizes (pad or "
+                    "crop the sequences, or batch datasets of one length)."
+                )
+    meta = {k: v for k, v in first.meta.items() if k != "splits"}
+    if len(items) == 1:
+        return TrajectoryDataset(first.states, first.measurements, first.inputs, meta)
+    return TrajectoryDataset(
+        *(torch.cat([getattr(item, name) for item in items]) for name in _ARRAYS), meta
+    )
 
 
 # ---------------------------------------------------------------------- files

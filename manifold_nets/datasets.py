@@ -14,7 +14,9 @@ A :class:`~manifold_nets.config.DatasetConfig` describes one file (``num_sequenc
 ``length`` at ``sigma`` from ``seed``, cut into contiguous ``splits``). A file is named by the
 system, sizes and a hash of everything that determines its contents (the system's
 ``config()``, sizes, sigma, seed, splits, format version): the same config reuses the file, a
-changed one writes a new file.
+changed one writes a new file. The check and the generation hold a lock on ``<file>.lock``
+(:func:`~manifold_nets.atomic.file_lock`), so parallel jobs of a sweep that need the same file
+make it once: the first generates it, the others wait and read it.
 
 For training and evaluation: :func:`training_data` (the ``train``/``val`` splits from the cache,
 a file, or a mixture of noise levels, one per sequence: :func:`noise_level_mixture`) and
@@ -44,6 +46,7 @@ from .data import (
     save_dataset,
     split_ranges,
 )
+from .atomic import file_lock
 from .config import DatasetConfig, EvalConfig
 from .system import System
 
@@ -173,6 +176,14 @@ def load_or_generate(
     request = _request(cfg)
     path = dataset_path(system, Path(cfg.cache_dir if cache_dir is None else cache_dir), **request)
     expected = _hash(_request_config(system, **request))
+    with file_lock(path):  # parallel jobs wanting this file: one generates, the others read it
+        ds = _read_or_make(system, cfg, request, path, expected)
+    ds.meta["path"] = str(path)
+    return ds.splits()
+
+
+def _read_or_make(system: System, cfg: DatasetConfig, request: dict, path: Path, expected: str):
+    """The dataset of ``path`` if cached (and of the expected config), else made and written."""
     if path.exists() and not cfg.regenerate:
         ds = load_dataset(path, group=system.group)
         if ds.meta.get("config_hash") != expected:
@@ -193,8 +204,7 @@ def load_or_generate(
             path, request["num_sequences"], request["length"], request["sigma"], made,
             time.perf_counter() - start,
         )
-    ds.meta["path"] = str(path)
-    return ds.splits()
+    return ds
 
 
 def training_data(

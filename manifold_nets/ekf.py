@@ -57,6 +57,7 @@ import torch
 from groups import LieGroup
 
 from .data import TrajectoryDataset
+from .progress import progress
 
 __all__ = [
     "BiasedReadingsFilterModel",
@@ -341,10 +342,17 @@ class ErrorStateEKF:
 
     ``jacobians``: ``"autograd"`` (default; ``torch.func.vjp``) or ``"analytic"`` (the
     model's methods). ``reset``: re-centre the covariance on the corrected estimate (the
-    ``J_r(delta)`` of a multiplicative EKF; the identity on ``R^n``).
+    ``J_r(delta)`` of a multiplicative EKF; the identity on ``R^n``). ``progress``: a bar of
+    the steps in :meth:`filter`, shown on a terminal when the run takes over two seconds.
     """
 
-    def __init__(self, model: FilterModel, jacobians: str = "autograd", reset: bool = True):
+    def __init__(
+        self,
+        model: FilterModel,
+        jacobians: str = "autograd",
+        reset: bool = True,
+        progress: bool = True,
+    ):
         if not isinstance(model, FilterModel):
             raise TypeError(
                 f"ErrorStateEKF needs a FilterModel (e.g. SystemFilterModel(system, sigma)), got "
@@ -356,6 +364,7 @@ class ErrorStateEKF:
         self.group = model.group
         self.jacobians = jacobians
         self.reset = bool(reset)
+        self.progress = bool(progress)
         self.name = "ekf"
 
     # ------------------------------------------------------------------ Jacobians
@@ -526,7 +535,8 @@ class ErrorStateEKF:
         est[:, 0] = state.x
         t0 = time.perf_counter()
         with torch.no_grad():
-            for k in range(t):
+            steps = progress(range(t), desc=f"{self.name} steps", enabled=self.progress, delay=2.0)
+            for k in steps:
                 state, nis[:, k] = self.step(state, measurements[:, k], inputs[:, k])
                 est[:, k + 1] = state.x
                 if cov is not None:

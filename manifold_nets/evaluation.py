@@ -31,6 +31,7 @@ import torch
 from .data import TrajectoryDataset
 from .losses import factor_errors
 from .observer import ResidualObserver
+from .progress import progress_bar
 
 __all__ = [
     "EvalResult",
@@ -53,9 +54,15 @@ class EvalResult:
 
 
 def rollout(
-    model: ResidualObserver, data: TrajectoryDataset, batch_size: int = 500
+    model: ResidualObserver,
+    data: TrajectoryDataset,
+    batch_size: int = 500,
+    show_progress: bool = False,
 ) -> torch.Tensor:
-    """The observer's estimates ``(N, T+1, *element_shape)`` on the CPU, in chunks of sequences."""
+    """The observer's estimates ``(N, T+1, *element_shape)`` on the CPU, in chunks of sequences.
+
+    ``show_progress``: a bar of the sequences done (on a terminal, when it takes over a second).
+    """
     if data.measurements.shape[-1] != model.measurement_dim:
         raise ValueError(
             f"the data has measurements of size {data.measurements.shape[-1]}, the observer "
@@ -64,25 +71,38 @@ def rollout(
     was = model.training
     model.eval()
     out = []
+    bar = progress_bar(
+        len(data), desc="evaluation", unit="seq", enabled=show_progress, delay=1.0
+    )
     with torch.inference_mode():
         for s in range(0, len(data), batch_size):
             y = data.measurements[s : s + batch_size]
             u = data.inputs[s : s + batch_size] if model.input_dim else None
             out.append(model(y, u).cpu())
+            bar.update(len(y))
+    bar.close()
     model.train(was)
     return torch.cat(out)
 
 
 class ObserverEstimator:
     """The learned observer as an :class:`~manifold_nets.baselines.Estimator`: its rollout from
-    the identity over whole datasets, in chunks of ``batch_size`` sequences."""
+    the identity over whole datasets, in chunks of ``batch_size`` sequences (``progress``: a bar
+    of the sequences done, on a terminal, for long evaluations)."""
 
-    def __init__(self, model: ResidualObserver, name: str = "learned", batch_size: int = 500):
+    def __init__(
+        self,
+        model: ResidualObserver,
+        name: str = "learned",
+        batch_size: int = 500,
+        progress: bool = True,
+    ):
         self.model, self.name, self.batch_size = model, name, batch_size
         self.group = model.group
+        self.progress = progress
 
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
-        return rollout(self.model, data, self.batch_size)
+        return rollout(self.model, data, self.batch_size, show_progress=self.progress)
 
 
 def _pad_front(t: torch.Tensor, length: int) -> torch.Tensor:

@@ -19,6 +19,11 @@ Files written in ``out_dir``:
   model, so a best checkpoint exists from the start);
 * ``log.csv`` and ``log.json``: one row per epoch (train loss, validation loss, best, time).
 
+``on_epoch(row)``, when given, is called with a copy of every new row (epoch 0 included; a
+resumed run continues from its next epoch): the hook for loggers (the train command's
+TensorBoard writer, :mod:`manifold_nets.tensorboard_log`) and early looks, without the loop
+knowing any of them.
+
 Settings come as one :class:`~manifold_nets.config.TrainSettings` (the ``train`` group of the
 config schema). Data augmentation is a batch transform handed to :func:`fit`
 (:class:`~manifold_nets.augmentation.MeasurementNoise` adds measurement noise of a random
@@ -56,6 +61,7 @@ from .observer import ResidualObserver
 
 __all__ = [
     "BatchTransform",
+    "EpochCallback",
     "FitResult",
     "TrainingDiverged",
     "check_schedule",
@@ -68,6 +74,10 @@ __all__ = [
 #: A batch transform: ``(measurements (B, T, l), generator) -> measurements``, applied to every
 #: training batch before the rollout (e.g. :class:`~manifold_nets.augmentation.MeasurementNoise`).
 BatchTransform = Callable[[torch.Tensor, torch.Generator], torch.Tensor]
+
+#: A per-epoch callback: called with each log row (``epoch``, ``train_loss`` (``None`` for
+#: epoch 0), ``val_loss``, ``best_val_loss``, ``best_epoch``, ``lr``, ``seconds``).
+EpochCallback = Callable[[dict], None]
 
 log = logging.getLogger(__name__)
 
@@ -210,6 +220,7 @@ def fit(
     seed: int = 0,
     transform: BatchTransform | None = None,
     config: dict | None = None,
+    on_epoch: EpochCallback | None = None,
 ) -> FitResult:
     """Trains ``model`` in place (it ends with the *last* epoch's weights; load ``best.pt`` for
     the best) and returns a :class:`FitResult`. See the module docstring for the files.
@@ -220,10 +231,11 @@ def fit(
     and ``resume``: a ``last.pt`` (or a run folder holding one) of the same model, training then
     continues after its epoch. ``transform`` is applied to every training batch's measurements
     with the run's generator (seeded by ``seed``, like the batch order). ``config`` (plain data)
-    is stored in the checkpoints.
+    is stored in the checkpoints. ``on_epoch`` is called with each new log row.
     """
     check_settings(settings)
     trainer = _Trainer(model, settings, Path(out_dir), seed, config or {})
+    trainer.on_epoch = on_epoch
     train = _prepare(train_data, model, trainer.device, "training")
     val = _prepare(val_data, model, trainer.device, "validation")
     start = 1 if settings.resume is None else trainer.resume(settings.resume)
@@ -251,6 +263,12 @@ class _Trainer:
         )
         self.history: list[dict] = []
         self.best = {"epoch": 0, "val_loss": math.inf}
+        self.on_epoch: EpochCallback | None = None
+
+    def tell(self, row: dict) -> None:
+        """Hands a new log row to ``on_epoch`` (a copy: the history stays the trainer's)."""
+        if self.on_epoch is not None:
+            self.on_epoch(dict(row))
 
     def payload(self, epoch: int, full: bool) -> dict:
         """What a checkpoint holds: ``best.pt`` the weights, ``last.pt`` all to resume."""
@@ -318,6 +336,7 @@ class _Trainer:
         )
         save_checkpoint(self.best_path, self.payload(0, full=False))
         _write_logs(self.out_dir, self.history)
+        self.tell(self.history[-1])
         log.info("epoch 0 (before any step): val loss %.5g", v0)
 
     def epoch(self, epoch: int, train, val, transform: BatchTransform | None) -> None:
@@ -350,6 +369,7 @@ class _Trainer:
         self.history.append(row)
         save_checkpoint(self.last_path, self.payload(epoch, full=True))
         _write_logs(self.out_dir, self.history)
+        self.tell(row)
         log.info(
             "epoch %d/%d: train loss %.5g, val loss %.5g (best %.5g at epoch %d), %.1f s",
             epoch, s.epochs, train_loss, val_loss, self.best["val_loss"], self.best["epoch"],

@@ -75,13 +75,15 @@ def _estimator(cfg: DictConfig, system, model: ResidualObserver | None, metrics:
                 best_val_loss=ckpt.get("best", {}).get("val_loss"),
             )
             log.info("evaluating %s (epoch %s)", path, ckpt["epoch"])
-        est = ObserverEstimator(model, label, cfg.train.eval_batch_size)
+        est = ObserverEstimator(model, label, cfg.train.eval_batch_size, cfg.eval.progress)
         return lambda sigma: est
     factory = build_estimator_factory(system, cfg.method)
     metrics["method_params"] = dict(cfg.method.params)
 
     def make(sigma: float):
         est = make_estimator(system, factory, sigma, **dict(cfg.method.params))
+        if isinstance(getattr(est, "progress", None), bool):  # a filter's bar over its steps
+            est.progress = bool(cfg.eval.progress)
         metrics.setdefault("estimators", {})[f"{sigma:g}"] = repr(est)
         return est
 
@@ -145,10 +147,11 @@ def evaluate(
     return metrics
 
 
-def _hydra_main(cfg: DictConfig) -> None:
+def _hydra_main(cfg: DictConfig) -> float | None:
+    """Evaluates and returns the run's objective (``objective=``, e.g. ``'R est'``) to a sweeper."""
     from hydra.core.hydra_config import HydraConfig
 
-    from .train import run
+    from .train import run, sweeper_reads_the_objective
 
     if cfg.method.name == "learned" and not cfg.method.target and not cfg.eval.checkpoint:
         raise ValueError(
@@ -156,7 +159,8 @@ def _hydra_main(cfg: DictConfig) -> None:
             "method=learned, or pick a baseline (method=ekf, raw, ...); to train, use "
             "manifold_nets.cli.train."
         )
-    run(cfg, HydraConfig.get().runtime.output_dir)
+    required = sweeper_reads_the_objective(cfg)
+    return run(cfg, HydraConfig.get().runtime.output_dir, objective_required=required)["objective"]
 
 
 def main() -> None:

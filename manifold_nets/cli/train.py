@@ -17,8 +17,20 @@ goes through the same evaluation (:mod:`manifold_nets.cli.evaluate`).
 
 A run folder (``outputs/<name>/<date_time_pid>/``, or ``multirun/<name>/<date_time_pid>/<job>/``)
 holds ``config.yaml`` (resolved), ``log.csv``/``log.json`` (per epoch), ``checkpoints/best.pt``
-and ``last.pt``, and ``results/`` (see the evaluation command). Interrupted? Resume with
-``train.resume=<run folder>``.
+and ``last.pt``, ``results/`` (see the evaluation command), and with ``train.tensorboard=true``
+``tensorboard/`` (losses, learning rate, metrics: :mod:`manifold_nets.tensorboard_log`).
+Interrupted? Resume with ``train.resume=<run folder>``.
+
+The hydra entry returns the run's objective (``objective=``: ``best_val_loss`` by default,
+``test_loss``, or a table column such as ``'R est'`` or ``'R est@0.1'``; see
+:mod:`manifold_nets.objective`) as a float, which hydra's Optuna sweeper optimises::
+
+    python -m manifold_nets.cli.train -m hydra/sweeper=optuna hydra.sweeper.n_trials=20 \
+        experiment=default 'train.lr=interval(1e-4,1e-2)'
+
+A run with no loss to return (a baseline under the default objective) returns ``None``, unless
+a sweeper that reads the value runs it: then it fails before any work. docs/sweeps.md has the
+launchers (joblib, submitit) and the search.
 
 :func:`run` does the work of one composed config (what tests call); :func:`train` is the
 training task alone.
@@ -41,12 +53,14 @@ from manifold_nets.builders import LEARNED_METHODS, build_observer, build_system
 from manifold_nets.checkpoint import load_checkpoint, load_weights
 from manifold_nets.config import RunConfig
 from manifold_nets.datasets import training_data
-from manifold_nets.training import check_settings, fit, validation_loss
+from manifold_nets.objective import objective_value, parse_objective
+from manifold_nets.tensorboard_log import TensorBoardLog, check_tensorboard
+from manifold_nets.training import EpochCallback, check_settings, fit, validation_loss
 
 from . import CONFIG_PATH
 from .evaluate import absolute, check_sigmas, evaluate
 
-__all__ = ["check_config", "main", "run", "train"]
+__all__ = ["check_config", "main", "run", "sweeper_reads_the_objective", "train"]
 
 log = logging.getLogger(__name__)
 
@@ -66,10 +80,20 @@ def check_config(cfg: DictConfig) -> None:
         ) from None
 
 
-def _check_before_work(cfg: DictConfig) -> None:
-    """Every check that needs no work: the schema, the sigmas, the training settings."""
+def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> None:
+    """Every check that needs no work: the schema, the sigmas, the objective, the training
+    settings."""
     check_config(cfg)
     check_sigmas(cfg.eval.sigmas)
+    if cfg.train.tensorboard:
+        check_tensorboard()
+    objective = parse_objective(cfg.objective, cfg.eval.sigmas)
+    missing = _no_loss_to_return(cfg) if objective.is_loss else None
+    if objective_required and missing:
+        raise ValueError(
+            f"objective={cfg.objective!r}: the sweeper needs a value, but {missing}; choose a "
+            "metric column of the results table instead, e.g. objective='R est' (docs/sweeps.md)."
+        )
     try:
         check_settings(OmegaConf.to_object(cfg.train))
     except ValueError as err:  # the library names its parameter first: name the config key
@@ -87,10 +111,24 @@ def _check_before_work(cfg: DictConfig) -> None:
         )
 
 
-def train(cfg: DictConfig, system, model, out_dir: Path) -> dict[str, Any]:
+def _no_loss_to_return(cfg: DictConfig) -> str | None:
+    """Why the run will have no ``cfg.objective`` loss to return (``None``: it will have one)."""
+    learned = cfg.method.name == "learned" and not cfg.method.target
+    if not learned:
+        return f"method={cfg.method.name} does not train, so it has no {cfg.objective}"
+    if cfg.objective == "test_loss" and cfg.eval.checkpoint:
+        return "a run that evaluates eval.checkpoint does not train, so it has no test_loss"
+    if cfg.objective == "test_loss" and not cfg.eval.test_split:
+        return "eval.test_split=false: the test loss is not computed"
+    return None
+
+
+def train(
+    cfg: DictConfig, system, model, out_dir: Path, on_epoch: EpochCallback | None = None
+) -> dict[str, Any]:
     """The training task: data, fit, the best weights back into ``model``, the test loss.
 
-    Returns what the run's ``metrics.json`` records of it.
+    Returns what the run's ``metrics.json`` records of it; ``on_epoch`` goes to ``fit``.
     """
     t, info = cfg.train, {}
     if t.init_from:
@@ -117,7 +155,7 @@ def train(cfg: DictConfig, system, model, out_dir: Path) -> dict[str, Any]:
     t0 = time.perf_counter()
     result = fit(
         model, parts["train"], parts["val"], settings, out_dir=out_dir, seed=int(cfg.seed),
-        transform=noise, config=OmegaConf.to_container(cfg, resolve=True),
+        transform=noise, config=OmegaConf.to_container(cfg, resolve=True), on_epoch=on_epoch,
     )
     best = load_checkpoint(result.best_path, model.signature(), map_location=model.device)
     model.load_state_dict(best["model"])
@@ -134,16 +172,33 @@ def train(cfg: DictConfig, system, model, out_dir: Path) -> dict[str, Any]:
     return info
 
 
-def run(cfg: DictConfig, out_dir: str | Path) -> dict:
+def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = False) -> dict:
     """Runs one experiment into ``out_dir``: training (when the method learns and no
-    ``eval.checkpoint`` is given), then the evaluation. Returns the metrics."""
-    _check_before_work(cfg)
+    ``eval.checkpoint`` is given), then the evaluation. Returns the metrics, with
+    ``metrics["objective"]`` the value of ``cfg.objective`` (``None`` when the run has no such
+    loss and ``objective_required`` is false; with it true that fails before any work)."""
+    _check_before_work(cfg, objective_required)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     write_text_atomic(out_dir / "config.yaml", OmegaConf.to_yaml(resolved))
     if cfg.train.threads is not None:
         torch.set_num_threads(int(cfg.train.threads))
+    board = TensorBoardLog(out_dir / "tensorboard") if cfg.train.tensorboard else None
+    try:
+        metrics = _train_and_evaluate(cfg, out_dir, board)
+    finally:
+        if board is not None:
+            board.close()
+    metrics["objective"] = None
+    if not (parse_objective(cfg.objective).is_loss and _no_loss_to_return(cfg)):
+        metrics["objective"] = objective_value(cfg.objective, metrics)
+        log.info("objective %s = %.6g", cfg.objective, metrics["objective"])
+    return metrics
+
+
+def _train_and_evaluate(cfg: DictConfig, out_dir: Path, board: TensorBoardLog | None) -> dict:
+    """The system, the observer (for the learned methods), training, the evaluation."""
     device = resolve_device(cfg.train.device)
     system = build_system(cfg.system)
     model, info = None, {}
@@ -155,14 +210,45 @@ def run(cfg: DictConfig, out_dir: str | Path) -> dict:
         n_params = sum(p.numel() for p in model.parameters())
         log.info("observer: %s, %d parameters", model.signature(), n_params)
         if cfg.method.name == "learned" and not cfg.eval.checkpoint:
-            info = train(cfg, system, model, out_dir)
-    return evaluate(cfg, system, out_dir, model=model, info=info)
+            on_epoch = board.on_epoch if board is not None else None
+            info = train(cfg, system, model, out_dir, on_epoch=on_epoch)
+    metrics = evaluate(cfg, system, out_dir, model=model, info=info)
+    if board is not None:
+        step = int(metrics.get("best_epoch") or 0)
+        board.results(metrics["table"], step=step, test_loss=metrics.get("test_loss"))
+        log.info("TensorBoard files in %s", board.log_dir)
+    return metrics
 
 
-def _hydra_main(cfg: DictConfig) -> None:
+def sweeper_reads_the_objective(cfg: DictConfig) -> bool:
+    """Whether this hydra job runs under a sweeper that reads its return value (Optuna, ...):
+    a multirun whose sweeper is not hydra's basic one, which ignores the value. Warns when the
+    sweeper's ``direction`` goes against the objective (minimising a ``reduction %``)."""
+    from hydra.core.hydra_config import HydraConfig
+    from hydra.types import RunMode
+
+    hc = HydraConfig.get()
+    target = str(OmegaConf.select(hc, "sweeper._target_", default="") or "")
+    direction = OmegaConf.select(hc, "sweeper.direction", default=None)
+    direction = getattr(direction, "name", direction)  # the Optuna sweeper's enum, or a str
+    if isinstance(direction, str) and direction in ("minimize", "maximize"):
+        minimize = parse_objective(cfg.objective).minimize
+        if (direction == "minimize") != minimize:
+            log.warning(
+                "the sweeper will %s objective=%r, which is better %s: set "
+                "hydra.sweeper.direction=%s", direction,
+                cfg.objective, "smaller" if minimize else "larger",
+                "minimize" if minimize else "maximize",
+            )
+    return hc.mode == RunMode.MULTIRUN and not target.endswith(".BasicSweeper")
+
+
+def _hydra_main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 
-    run(cfg, HydraConfig.get().runtime.output_dir)
+    required = sweeper_reads_the_objective(cfg)
+    metrics = run(cfg, HydraConfig.get().runtime.output_dir, objective_required=required)
+    return metrics["objective"]
 
 
 def main() -> None:
