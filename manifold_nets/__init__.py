@@ -16,6 +16,7 @@ evaluation             :func:`evaluate`, :func:`factor_errors`, :class:`ErrorSta
                        (and :mod:`manifold_nets.baselines`)
 config and artefacts   :class:`RunConfig` (the schema), :func:`build_observer`,
                        :func:`load_checkpoint`, :func:`save_checkpoint`
+deployment             :func:`load_observer` (a run folder or checkpoint, in one call)
 =====================  ======================================================================
 
 The commands (training, evaluation, data generation, sweeps, comparisons) live in
@@ -32,6 +33,7 @@ from .datasets import load_or_generate, make_dataset
 from .ekf import ErrorStateEKF
 from .evaluation import evaluate
 from .inputs import ObserverInputs
+from .loading import load_observer
 from .losses import embedding_mse, factor_errors
 from .observer import ResidualObserver
 from .system import System
@@ -64,4 +66,5 @@ __all__ = [
     "build_observer",
     "load_checkpoint",
     "save_checkpoint",
+    "load_observer",
 ]
