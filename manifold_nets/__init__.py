@@ -16,7 +16,8 @@ evaluation             :func:`evaluate`, :func:`factor_errors`, :class:`ErrorSta
                        (and :mod:`manifold_nets.baselines`)
 config and artefacts   :class:`RunConfig` (the schema), :func:`build_observer`,
                        :func:`load_checkpoint`, :func:`save_checkpoint`
-deployment             :func:`load_observer` (a run folder or checkpoint, in one call)
+deployment             :func:`load_observer` (a run folder or checkpoint, in one call),
+                       :func:`export_observer` (the online step, ``torch.export``)
 =====================  ======================================================================
 
 The commands (training, evaluation, data generation, sweeps, comparisons) live in
@@ -30,6 +31,7 @@ from .config import DatasetConfig, ModelConfig, RunConfig, TrainSettings
 from .cores import GRUCore, RecurrentCore
 from .data import DatasetError, TrajectoryDataset, load_dataset, save_dataset
 from .datasets import load_or_generate, make_dataset
+from .deploy import export_observer
 from .ekf import ErrorStateEKF
 from .evaluation import evaluate
 from .inputs import ObserverInputs
@@ -67,4 +69,5 @@ __all__ = [
     "load_checkpoint",
     "save_checkpoint",
     "load_observer",
+    "export_observer",
 ]
