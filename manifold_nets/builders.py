@@ -90,8 +90,9 @@ def build_observer(
     (:func:`~manifold_nets.relax.relax`).
 
     ``model.core`` is ``gru`` or a :class:`~manifold_nets.cores.RecurrentCore` subclass by dotted
-    path; with ``import_core=False`` (a config read from a file, :func:`manifold_nets.load_observer`)
-    only one already imported (:data:`manifold_nets.cores.CORES`), never a module to import."""
+    path; with ``import_core=False`` (a config read from a file,
+    :func:`manifold_nets.load_observer`) only one already imported
+    (:data:`manifold_nets.cores.CORES`), never a module to import."""
     group = relax(group, list(model.relax))
     inputs = ObserverInputs(dict(model.innovation), tuple(model.relative_only))
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)

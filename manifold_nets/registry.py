@@ -56,7 +56,8 @@ class Registry:
     def lookup(self, path: object, where: str = "the file") -> type:
         """The registered class of dotted path ``path``; :class:`UnknownTargetError` otherwise.
 
-        ``where`` names the source of ``path`` in the message (``"run/config.yaml: system._target_"``).
+        ``where`` names the source of ``path`` in the message
+        (``"run/config.yaml: system._target_"``).
         Nothing is imported.
         """
         if not isinstance(path, str) or not path:

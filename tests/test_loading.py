@@ -65,11 +65,27 @@ def test_a_run_folder_loads_into_the_trained_observer(tiny_run):
     assert cfg2.system == config.system
 
 
+def test_the_loaded_observer_reproduces_the_runs_own_evaluation(tiny_run):
+    from omegaconf import OmegaConf
+
+    from manifold_nets.datasets import inference_data
+    from manifold_nets.evaluation import ObserverEstimator, evaluate
+
+    observer, system, config = load_observer(tiny_run)
+    (row,) = json.loads((tiny_run / "results" / "metrics.json").read_text())["table"]
+    dataset = OmegaConf.to_object(config.dataset)
+    data = inference_data(system, dataset, config.eval, 0.1, cache_dir=dataset.cache_dir)
+    again = evaluate(ObserverEstimator(observer), data, system, skip=config.eval.skip_steps).row
+    for key in ("R est", "p est", "b_omega est", "b_v est"):
+        assert again[key] == pytest.approx(row[key], rel=1e-9), key
+
+
 def _hostile_copy(run_dir: Path, dest: Path, edit) -> Path:
     """A copy of the run folder whose config.yaml is ``edit(config dict)``."""
     dest.mkdir()
     (dest / "checkpoints").mkdir()
-    (dest / "checkpoints" / "best.pt").write_bytes((run_dir / "checkpoints" / "best.pt").read_bytes())
+    best = run_dir / "checkpoints" / "best.pt"
+    (dest / "checkpoints" / "best.pt").write_bytes(best.read_bytes())
     cfg = yaml.safe_load((run_dir / "config.yaml").read_text())
     edit(cfg)
     (dest / "config.yaml").write_text(yaml.safe_dump(cfg))
