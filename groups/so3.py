@@ -196,12 +196,17 @@ class SO3(MatrixLieGroup):
         ``2 atan2(s, |w|) / s * sign(w) (x, y, z)`` with ``s = |(x, y, z)|``: the quaternion
         ``(w, x, y, z)`` of Shepperd's method may be any nonzero multiple of the unit one (atan2
         and the ratio do not see the scale), and the sign picks the one with ``w >= 0``.
+        The sign is taken from ``1 / w`` (the sign bit of ``w``, as ``copysign`` would), so the
+        logarithm exports with ``torch.export`` and to ONNX.
         """
         self.check_element(x, "log")
         batch = x.shape[:-2]
         qw, qx, qy, qz = _matrix_to_quaternion(x)  # rows (N,)
         s2 = torch.addcmul(torch.addcmul(qx * qx, qy, qy), qz, qz)
-        k = torch.copysign(nx.atan2_over_s(s2, qw.abs()), qw.detach())
+        k = nx.atan2_over_s(s2, qw.abs())  # > 0
+        # copysign(k, qw) for k > 0, written with ops that export to ONNX (copysign lowers to
+        # signbit, which has none): 1 / qw keeps the sign bit of qw, -0.0 included (-inf).
+        k = torch.where(torch.reciprocal(qw.detach()) < 0, -k, k)
         two = 2.0 * torch.eye(3, dtype=x.dtype, device=x.device)
         # (3, N) -> (N, 3) by a product with 2 I: the transposing copy and the factor 2 (exact).
         return torch.mm(torch.stack((k * qx, k * qy, k * qz)).t(), two).reshape(*batch, 3)

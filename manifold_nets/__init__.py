@@ -16,6 +16,8 @@ evaluation             :func:`evaluate`, :func:`factor_errors`, :class:`ErrorSta
                        (and :mod:`manifold_nets.baselines`)
 config and artefacts   :class:`RunConfig` (the schema), :func:`build_observer`,
                        :func:`load_checkpoint`, :func:`save_checkpoint`
+deployment             :func:`load_observer` (a run folder or checkpoint, in one call),
+                       :func:`export_observer` (the online step, ``torch.export``)
 =====================  ======================================================================
 
 The commands (training, evaluation, data generation, sweeps, comparisons) live in
@@ -30,9 +32,11 @@ from .cores import GRUCore, RecurrentCore
 from .data import DatasetError, TrajectoryDataset, load_dataset, save_dataset
 from .data import collate_trajectories
 from .datasets import load_or_generate, make_dataset
+from .deploy import export_observer
 from .ekf import ErrorStateEKF
 from .evaluation import evaluate
 from .inputs import ObserverInputs
+from .loading import load_observer
 from .losses import embedding_mse, factor_errors
 from .observer import ResidualObserver
 from .system import System
@@ -66,4 +70,6 @@ __all__ = [
     "build_observer",
     "load_checkpoint",
     "save_checkpoint",
+    "load_observer",
+    "export_observer",
 ]

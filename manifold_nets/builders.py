@@ -16,7 +16,7 @@ import torch
 from groups import LieGroup
 
 from .config import DTYPES, MethodConfig, ModelConfig
-from .cores import GRUCore, RecurrentCore
+from .cores import CORES, GRUCore, RecurrentCore
 from .inputs import ObserverInputs
 from .observer import ResidualObserver
 from .relax import relax
@@ -69,10 +69,13 @@ def build_system(system_cfg: Any) -> System:
     return system
 
 
-def _core_class(name: str) -> type[RecurrentCore]:
-    """``gru`` or the dotted path of a :class:`~manifold_nets.cores.RecurrentCore` subclass."""
+def _core_class(name: str, import_core: bool = True) -> type[RecurrentCore]:
+    """``gru``, a registered :class:`~manifold_nets.cores.RecurrentCore` subclass (its module
+    imported), or, only when ``import_core``, the dotted path of one to import."""
     if name == "gru":
         return GRUCore
+    if name in CORES or not import_core:
+        return CORES.lookup(name, where="model.core")
     from hydra.utils import get_class
 
     try:
@@ -88,15 +91,25 @@ def _core_class(name: str) -> type[RecurrentCore]:
 
 
 def build_observer(
-    group: LieGroup, measurement_dim: int, input_dim: int, model: ModelConfig | Any
+    group: LieGroup,
+    measurement_dim: int,
+    input_dim: int,
+    model: ModelConfig | Any,
+    *,
+    import_core: bool = True,
 ) -> ResidualObserver:
     """The observer of a ``model`` config (:class:`~manifold_nets.config.ModelConfig`) for a
     system's ``group`` and sizes; ``model.relax`` takes factors off the group
-    (:func:`~manifold_nets.relax.relax`)."""
+    (:func:`~manifold_nets.relax.relax`).
+
+    ``model.core`` is ``gru`` or a :class:`~manifold_nets.cores.RecurrentCore` subclass by dotted
+    path; with ``import_core=False`` (a config read from a file,
+    :func:`manifold_nets.load_observer`) only one already imported
+    (:data:`manifold_nets.cores.CORES`), never a module to import."""
     group = relax(group, list(model.relax))
     inputs = ObserverInputs(dict(model.innovation), tuple(model.relative_only))
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)
-    core_cls = _core_class(model.core)
+    core_cls = _core_class(model.core, import_core)
     core = core_cls(
         in_size, group.tangent_dim, hidden_size=model.hidden_size, num_layers=model.num_layers
     )

@@ -14,7 +14,13 @@ import abc
 import torch
 from torch import nn
 
-__all__ = ["Hidden", "RecurrentCore", "GRUCore"]
+from .registry import Registry
+
+__all__ = ["CORES", "Hidden", "RecurrentCore", "GRUCore"]
+
+#: Every imported :class:`RecurrentCore` subclass by ``module.qualname``: what a file's
+#: ``model.core`` may name (:mod:`manifold_nets.registry`).
+CORES = Registry("RecurrentCore", "manifold_nets.RecurrentCore")
 
 #: A core's hidden state: a tuple of tensors whose first dimension is the batch.
 Hidden = tuple[torch.Tensor, ...]
@@ -30,6 +36,10 @@ class RecurrentCore(nn.Module, abc.ABC):
 
     input_size: int
     output_size: int
+
+    def __init_subclass__(cls, **kwargs) -> None:
+        super().__init_subclass__(**kwargs)
+        CORES.add(cls)  # a file's model.core may name it once its module is imported
 
     @abc.abstractmethod
     def initial_hidden(

@@ -226,6 +226,15 @@ class ResidualObserver(nn.Module):
         self._compiled_step = torch.compile(self._step, **{"dynamic": False, **options})
         return self
 
+    def online_step_module(self) -> nn.Module:
+        """This observer's online step as a check-free module,
+        ``forward(x, *hidden, y[, u]) -> (x, *hidden)`` on flat tensors, for ``torch.export``,
+        ``torch.compile`` or ONNX (:class:`manifold_nets.deploy.OnlineStep`; parameters shared).
+        """
+        from .deploy import OnlineStep
+
+        return OnlineStep(self)
+
     # ------------------------------------------------------------------ description
 
     @property
@@ -358,7 +367,9 @@ class ResidualObserver(nn.Module):
                 parts.append(inputs)
         dev, net = self.device, self.net_dtype
         context = torch.cat([p.to(device=dev, dtype=net) for p in parts], dim=-1)
-        if not bool(torch.isfinite(context).all()):
+        # a data-dependent branch: checked in eager use, left out of a traced graph
+        # (torch.compile, torch.export), which cannot branch on values
+        if not torch.compiler.is_compiling() and not bool(torch.isfinite(context).all()):
             raise ValueError("measurements/inputs hold NaN or Inf; the observer needs finite data.")
         if self._keep_context is not None:
             context = context.index_select(-1, self._keep_context)

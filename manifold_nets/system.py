@@ -55,8 +55,13 @@ from groups import LieGroup
 from .data import TrajectoryDataset, check_positive_int, check_sigma
 from .losses import factor_errors
 from .progress import progress
+from .registry import Registry
 
-__all__ = ["System", "check_last_dim", "check_number"]
+__all__ = ["SYSTEMS", "System", "check_last_dim", "check_number"]
+
+#: Every imported :class:`System` subclass by ``module.qualname``: what a run folder's
+#: ``system._target_`` may name (:mod:`manifold_nets.registry`).
+SYSTEMS = Registry("System", "manifold_nets.System")
 
 _DTYPE = torch.float64
 _MEASURE_CHUNK = 1 << 17  # (sequence, step) pairs measured at once: small temporaries are faster
@@ -164,6 +169,7 @@ class System(abc.ABC):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
+        SYSTEMS.add(cls)  # a file may name it once its module is imported, never before
         # a subclass that writes measure itself (the older form) gets observe from it
         if "measure" in cls.__dict__ and getattr(cls.observe, "__isabstractmethod__", False):
             cls.observe = _observe_by_measure

@@ -21,8 +21,8 @@ the ratio of the learned observer's error to the EKF's (below 1: the observer is
 ``results/compare_sigma<s>.png``, the mean error against the step per metric and method
 (``compare_<tag>...`` with ``--tag``, so that other inference sets do not overwrite them).
 
-Only library pieces of ``manifold_nets`` are used (``build_system``, ``build_observer``,
-``load_weights``, ``inference_data``, ``rollout``), no command; the estimators follow
+Only library pieces of ``manifold_nets`` are used (``load_observer``, ``inference_data``,
+``rollout``), no command; the estimators follow
 ``manifold_nets.baselines.Estimator``.
 """
 
@@ -36,12 +36,16 @@ from pathlib import Path
 import torch
 from omegaconf import OmegaConf
 
-from manifold_nets.builders import build_observer, build_system
-from manifold_nets.checkpoint import load_weights
-from manifold_nets.config import RunConfig
 from manifold_nets.datasets import inference_data
 from manifold_nets.evaluation import rollout
+from manifold_nets.loading import load_observer
 from manifold_nets.reporting import plot_comparison, write_table
+
+# the shipped systems, registered so that their run folders load (load_observer looks the
+# config's system up among the imported System subclasses)
+from ..planar import system as _planar  # noqa: F401
+from ..rigid_body import system as _rigid_body  # noqa: F401
+from . import system as _attitude  # noqa: F401
 
 __all__ = ["compare_run", "load_run", "main"]
 
@@ -51,17 +55,16 @@ EstimatorFactory = Callable[[object, float], Sequence[object]]
 
 def load_run(run_dir: str | Path):
     """``(config, system, observer)`` of a training run folder; the observer holds the best
-    validation weights (its signature is checked against the config's model)."""
+    validation weights (its signature is checked against the config's model).
+
+    Through :func:`manifold_nets.load_observer`: the system is one of the shipped ones (imported
+    above) or one the caller imported, never a class the folder's config would have imported."""
     run_dir = Path(run_dir)
-    path = run_dir / "config.yaml"
-    if not path.is_file():
+    if not (run_dir / "config.yaml").is_file():
         raise FileNotFoundError(
             f"{run_dir} has no config.yaml: not a run folder of the train command."
         )
-    cfg = OmegaConf.merge(OmegaConf.structured(RunConfig), OmegaConf.load(path))  # typed
-    system = build_system(cfg.system)
-    model = build_observer(system.group, system.measurement_dim, system.input_dim, cfg.model)
-    load_weights(model, run_dir)
+    model, system, cfg = load_observer(run_dir)
     return cfg, system, model
 
 

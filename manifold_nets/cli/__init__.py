@@ -6,6 +6,7 @@
 ``python -m manifold_nets.cli.generate`` simulate (or find in the cache) one dataset
 ``python -m manifold_nets.cli.sweep``    one table for a hydra multirun
 ``python -m manifold_nets.cli.compare``  methods side by side, one table per sigma
+``python -m manifold_nets.cli.apply``    a trained observer over a dataset file, estimates out
 ======================================  ==================================================
 
 Each command builds objects from its config with :mod:`manifold_nets.builders`, logs a line,

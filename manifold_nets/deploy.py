@@ -1,0 +1,192 @@
+"""Deployment: the observer's online step as a check-free module, exported with ``torch.export``.
+
+:meth:`ResidualObserver.step` validates its arguments every call (types, shapes, finite values):
+right for interactive use, but a data-dependent ``if`` (``bool(isfinite(y).all())``) cannot be
+traced into a graph, and the checks cost more than the arithmetic at batch 1. :class:`OnlineStep`
+is the same step on plain tensors, with nothing checked::
+
+    step = observer.online_step_module()          # an nn.Module
+    x, *hidden = step.initial_state()             # the identity, the core's zero state
+    for y in stream:                              # y: (1, measurement_dim), the state dtype
+        x, *hidden = step(x, *hidden, y)          # (..., u) when the observer reads inputs
+        estimate = x.view(1, *observer.group.element_shape)
+
+:func:`export_observer` traces it with ``torch.export`` and writes the program
+(``torch.export.save``, a ``.pt2`` file that needs torch but no manifold_nets code to run), with
+a JSON description beside the graph; :func:`load_exported_step` reads it back.
+:func:`export_onnx` writes an ONNX model (needs ``onnx`` and ``onnxscript``: the ``export``
+extra); ``docs/deployment.md`` says which runtimes run which dtypes.
+
+The step's tensors: ``x`` ``(B, numel)`` the flattened estimate in the state dtype; ``hidden``
+the core's state, each ``(B, ...)`` in the network dtype; ``y`` ``(B, measurement_dim)`` in the
+state dtype (the measured factors of innovation inputs are read in it; the network reads ``y``
+cast to its dtype); ``u`` ``(B, input_dim)`` in the network dtype, only when ``input_dim > 0``.
+It returns ``(x_next, *hidden_next)``, the same values as :meth:`ResidualObserver.step`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import torch
+from torch import nn
+
+from .atomic import atomic_open
+
+if TYPE_CHECKING:
+    from .observer import ResidualObserver
+
+__all__ = ["OnlineStep", "ExportedStep", "export_observer", "load_exported_step", "export_onnx"]
+
+#: The name of the JSON description inside an exported ``.pt2`` file.
+META_NAME = "manifold_nets.json"
+
+
+class OnlineStep(nn.Module):
+    """One unchecked step of ``observer``: ``forward(x, *hidden, y[, u]) -> (x, *hidden)``.
+
+    See the module docstring for the shapes and dtypes. The observer's parameters are shared,
+    not copied.
+    """
+
+    def __init__(self, observer: ResidualObserver):
+        super().__init__()
+        self.observer = observer
+        self.num_hidden = len(observer.core.initial_hidden(1))
+
+    def initial_state(self, batch: int = 1) -> tuple[torch.Tensor, ...]:
+        """``(x, *hidden)`` before the first step: the identity and the core's initial state."""
+        x, hidden = self.observer.init_state(batch)
+        return (x.reshape(batch, -1), *hidden)
+
+    def example_inputs(self, batch: int = 1) -> tuple[torch.Tensor, ...]:
+        """Arguments of the right shapes and dtypes for tracing (the initial state, zero y, u)."""
+        obs = self.observer
+        y = torch.zeros(batch, obs.measurement_dim, dtype=obs.state_dtype, device=obs.device)
+        u = torch.zeros(batch, obs.input_dim, dtype=obs.net_dtype, device=obs.device)
+        return (*self.initial_state(batch), y, *((u,) if obs.input_dim else ()))
+
+    def forward(self, x: torch.Tensor, *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        obs = self.observer
+        want = self.num_hidden + 1 + (1 if obs.input_dim else 0)
+        if len(args) != want:
+            raise TypeError(
+                f"OnlineStep takes (x, {self.num_hidden} hidden tensors, y"
+                + (", u)" if obs.input_dim else ")")
+                + f", got {1 + len(args)} tensors."
+            )
+        hidden, y = tuple(args[: self.num_hidden]), args[self.num_hidden]
+        net = obs.net_dtype
+        context = y.to(net) if not obs.input_dim else torch.cat((y.to(net), args[-1].to(net)), -1)
+        if obs._keep_context is not None:
+            context = context.index_select(-1, obs._keep_context)
+        x, hidden = obs._step(x, hidden, context, obs._measured(y))
+        return (x, *hidden)
+
+
+def _meta(step: OnlineStep, batch: int | None) -> dict[str, Any]:
+    obs = step.observer
+    return {
+        "format": "manifold_nets.online_step/1",
+        "signature": obs.signature(),
+        "element_shape": list(obs.group.element_shape),
+        "state_dtype": str(obs.state_dtype).removeprefix("torch."),
+        "net_dtype": str(obs.net_dtype).removeprefix("torch."),
+        "measurement_dim": obs.measurement_dim,
+        "input_dim": obs.input_dim,
+        "batch": batch,
+        "inputs": ["x"] + [f"hidden{i}" for i in range(step.num_hidden)] + ["y"]
+        + (["u"] if obs.input_dim else []),
+        "initial_state": [t[0].tolist() for t in step.initial_state(1)],
+    }
+
+
+def export_observer(
+    observer: ResidualObserver, path: str | os.PathLike, batch: int | None = None
+) -> torch.export.ExportedProgram:
+    """Traces ``observer``'s online step (:class:`OnlineStep`) with ``torch.export`` and writes
+    the program to ``path`` (``torch.export.save``, atomically), with the description
+    :func:`load_exported_step` reads. Returns the program.
+
+    ``batch``: ``None`` (default) exports for any batch size (a dynamic first dimension, traced
+    at 2), an integer for that batch size only.
+    """
+    step = OnlineStep(observer).eval()
+    args = step.example_inputs(2 if batch is None else batch)
+    dynamic = None
+    if batch is None:
+        dim = torch.export.Dim("batch", min=1)
+        dynamic = ({0: dim}, tuple({0: dim} for _ in args[1:]))
+    with torch.no_grad():
+        program = torch.export.export(step, args, dynamic_shapes=dynamic)
+    path = Path(path)
+    with atomic_open(path, "wb") as f:
+        torch.export.save(program, f, extra_files={META_NAME: json.dumps(_meta(step, batch))})
+    return program
+
+
+class ExportedStep:
+    """An exported online step read back: call it as ``step(x, *hidden, y[, u])``.
+
+    ``meta`` is the description written beside the graph (the observer's signature, shapes,
+    dtypes, ``batch``: ``None`` for any); :meth:`initial_state` the identity and the zero hidden
+    state.
+    """
+
+    def __init__(self, program: torch.export.ExportedProgram, meta: dict[str, Any]):
+        self.program, self.meta = program, meta
+        self.module = program.module()
+
+    def initial_state(self, batch: int | None = None) -> tuple[torch.Tensor, ...]:
+        """``(x, *hidden)`` before the first step, the identity and the core's zero state, for
+        ``batch`` (default: the exported batch, or 1 for a program of any batch)."""
+        batch = batch or self.meta["batch"] or 1
+        dtypes = [self.meta["state_dtype"]] + [self.meta["net_dtype"]] * (
+            len(self.meta["initial_state"]) - 1
+        )
+        return tuple(
+            torch.tensor([v] * batch, dtype=getattr(torch, d))
+            for v, d in zip(self.meta["initial_state"], dtypes)
+        )
+
+    def __call__(self, *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
+        return self.module(*args)
+
+
+def load_exported_step(path: str | os.PathLike) -> ExportedStep:
+    """Reads a file of :func:`export_observer` (``torch.export.load``)."""
+    extra = {META_NAME: ""}
+    program = torch.export.load(path, extra_files=extra)
+    if not extra[META_NAME]:
+        raise ValueError(f"{path} has no {META_NAME}: not written by export_observer.")
+    return ExportedStep(program, json.loads(extra[META_NAME]))
+
+
+def export_onnx(observer: ResidualObserver, path: str | os.PathLike, batch: int = 1) -> Path:
+    """Writes ``observer``'s online step as an ONNX model (``torch.onnx.export(dynamo=True)``).
+
+    Inputs and outputs are named ``x, hidden0.., y[, u]`` and ``x_next, hidden0_next, ..``.
+    Needs ``onnx`` and ``onnxscript`` (``pip install manifold_nets[export]``).
+    """
+    try:
+        import onnx  # noqa: F401
+        import onnxscript  # noqa: F401
+    except ImportError as err:
+        raise ImportError(
+            f"export_onnx needs onnx and onnxscript ({err}); pip install 'manifold_nets[export]'."
+        ) from None
+    step = OnlineStep(observer).eval()
+    names = _meta(step, batch)["inputs"]
+    outputs = ["x_next"] + [f"hidden{i}_next" for i in range(step.num_hidden)]
+    with torch.no_grad():
+        program = torch.onnx.export(
+            step, step.example_inputs(batch), dynamo=True, input_names=names,
+            output_names=outputs, verbose=False,
+        )
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    program.save(str(path))
+    return path

@@ -1,0 +1,180 @@
+"""A trained observer back from a run folder or a checkpoint, in one call, executing nothing.
+
+:func:`load_observer` reads the resolved config a run left behind (``<run>/config.yaml``, or the
+``config`` entry of a checkpoint), rebuilds the system and the observer from it and loads the
+weights::
+
+    import manifold_nets_examples.rigid_body            # registers the system the run was trained on
+    from manifold_nets import load_observer
+
+    observer, system, config = load_observer("outputs/default/<run id>")
+
+A file from elsewhere is data, not code. What it may make happen:
+
+* the config is parsed as plain YAML (``yaml.safe_load``) or read from a checkpoint with
+  ``torch.load(weights_only=True)``; it must be plain data (mappings, lists, numbers, strings),
+  without omegaconf interpolations (``${...}``; a resolved config has none);
+* ``system._target_`` is only *looked up* among the :class:`~manifold_nets.system.System`
+  subclasses the program has imported (:data:`manifold_nets.system.SYSTEMS`); the class is called
+  with the other keys as keyword arguments, which must be plain values (no nested ``_target_``,
+  no other ``_``-keys of hydra's instantiate);
+* ``model.core`` is ``gru`` or an imported :class:`~manifold_nets.cores.RecurrentCore` subclass
+  (:data:`manifold_nets.cores.CORES`);
+* the weights load with ``weights_only=True`` after the checkpoint's signature (group, sizes,
+  update rules, core) is checked against the rebuilt observer
+  (:func:`manifold_nets.checkpoint.check_signature`).
+
+Nothing named by the file is imported or called otherwise; an unknown name is an error that says
+to import the module defining it first. Not checked: that the system's parameters describe the
+system the data came from (they are the run's), nor anything about the estimates.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any, NamedTuple
+
+import torch
+import yaml
+from omegaconf import DictConfig, OmegaConf
+
+from .builders import build_observer
+from .checkpoint import check_signature, load_checkpoint, resolve_checkpoint
+from .config import RunConfig
+from .observer import ResidualObserver
+from .system import SYSTEMS, System
+
+__all__ = ["LoadedObserver", "ArtefactError", "load_observer", "build_system_safely"]
+
+
+class ArtefactError(ValueError):
+    """A run folder or checkpoint cannot be turned back into an observer (and nothing ran)."""
+
+
+class LoadedObserver(NamedTuple):
+    """What :func:`load_observer` returns (unpacks as ``observer, system, config``)."""
+
+    #: The trained observer, its best weights loaded, in eval mode, on ``map_location``.
+    observer: ResidualObserver
+    #: The system it was trained on, built from the run's ``system`` config.
+    system: System
+    #: The run's resolved config, typed by :class:`~manifold_nets.config.RunConfig`.
+    config: DictConfig
+
+
+def _check_plain(value: Any, where: str) -> None:
+    """Raises :class:`ArtefactError` unless ``value`` is plain data without interpolations."""
+    if value is None or isinstance(value, (bool, int, float)):
+        return
+    if isinstance(value, str):
+        if "${" in value:
+            raise ArtefactError(
+                f"{where} = {value!r} is an interpolation; a resolved config holds plain values."
+            )
+        return
+    if isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _check_plain(v, f"{where}[{i}]")
+        return
+    if isinstance(value, dict):
+        for k, v in value.items():
+            if not isinstance(k, str):
+                raise ArtefactError(f"{where} has a key {k!r} that is not a string.")
+            _check_plain(v, f"{where}.{k}")
+        return
+    raise ArtefactError(
+        f"{where} is a {type(value).__name__}; a config file holds plain values only."
+    )
+
+
+def _check_parameter(value: Any, where: str) -> None:
+    """A system parameter: plain, with no mapping that asks hydra to build an object."""
+    if isinstance(value, dict):
+        nested = sorted(k for k in value if k.startswith("_"))
+        if nested:
+            raise ArtefactError(
+                f"{where} holds {nested}: system parameters are plain values, never objects to "
+                "build (manifold_nets does not instantiate nested targets from a file)."
+            )
+        for k, v in value.items():
+            _check_parameter(v, f"{where}.{k}")
+    elif isinstance(value, (list, tuple)):
+        for i, v in enumerate(value):
+            _check_parameter(v, f"{where}[{i}]")
+
+
+def build_system_safely(system_cfg: Any, where: str = "system") -> System:
+    """The system of a ``system`` config read from a file: ``_target_`` looked up among the
+    imported :class:`~manifold_nets.system.System` subclasses and called with the other keys,
+    plain values. Raises :class:`ArtefactError` before anything is called otherwise."""
+    if isinstance(system_cfg, DictConfig):
+        system_cfg = OmegaConf.to_container(system_cfg, resolve=False)
+    if not isinstance(system_cfg, dict):
+        raise ArtefactError(f"{where} must be a mapping with a _target_, got {system_cfg!r}.")
+    _check_plain(system_cfg, where)
+    params = dict(system_cfg)
+    target = params.pop("_target_", None)
+    cls = SYSTEMS.lookup(target, where=f"{where}._target_")
+    hydra_keys = sorted(k for k in params if k.startswith("_"))
+    if hydra_keys:
+        raise ArtefactError(
+            f"{where} holds {hydra_keys}: only _target_ and the class's parameters are read."
+        )
+    for name, value in params.items():
+        _check_parameter(value, f"{where}.{name}")
+    system = cls(**params)
+    if not isinstance(system, System):  # a registered class always is; a guard for subclasses
+        raise ArtefactError(f"{where}._target_ {target!r} did not make a System.")
+    return system
+
+
+def _read_config(path: Path) -> tuple[dict, Path, dict | None]:
+    """``(config, checkpoint file, checkpoint or None)`` of a run folder or a checkpoint file."""
+    if path.is_dir():
+        cfg_file = path / "config.yaml"
+        ckpt_file = resolve_checkpoint(path, name="best.pt")
+        if not cfg_file.is_file():
+            ckpt = load_checkpoint(ckpt_file)
+            return ckpt.get("config"), ckpt_file, ckpt
+        try:
+            cfg = yaml.safe_load(cfg_file.read_text())
+        except yaml.YAMLError as err:
+            raise ArtefactError(f"{cfg_file} is not plain YAML ({err}).") from None
+        return cfg, ckpt_file, None
+    if not path.exists():
+        raise ArtefactError(f"{path} is neither a run folder nor a checkpoint file.")
+    ckpt = load_checkpoint(path)
+    return ckpt.get("config"), path, ckpt
+
+
+def load_observer(
+    path: str | os.PathLike, map_location: str | torch.device = "cpu"
+) -> LoadedObserver:
+    """The trained observer, its system and its config from a run folder (``config.yaml`` and
+    ``checkpoints/best.pt``) or a checkpoint file (its ``config`` entry); see the module
+    docstring for what is checked and what never runs.
+
+    The system class (``system._target_``) and a core other than ``gru`` must have been imported
+    by the program: import the module that defines them first.
+    """
+    path = Path(path)
+    raw, ckpt_file, ckpt = _read_config(path)
+    where = str(path / "config.yaml" if path.is_dir() and ckpt is None else ckpt_file)
+    if not isinstance(raw, dict) or "system" not in raw:
+        raise ArtefactError(f"{where} holds no run config (a mapping with 'system' and 'model').")
+    _check_plain(raw, where)
+    system = build_system_safely(raw["system"], where=f"{where}: system")
+    try:
+        cfg = OmegaConf.merge(OmegaConf.structured(RunConfig), raw)
+    except Exception as err:  # omegaconf's validation errors
+        msg = str(err).splitlines()[0]
+        raise ArtefactError(f"{where} does not fit the run schema: {msg}.") from None
+    model = build_observer(
+        system.group, system.measurement_dim, system.input_dim, cfg.model, import_core=False
+    )
+    if ckpt is None:
+        ckpt = load_checkpoint(ckpt_file, map_location=map_location)
+    check_signature(ckpt["signature"], model.signature(), where=str(ckpt_file))
+    model.load_state_dict(ckpt["model"])
+    return LoadedObserver(model.to(map_location).eval(), system, cfg)
