@@ -7,7 +7,8 @@ user needs, by where they sit in the data flow
 =====================  ======================================================================
 system                 :class:`System` (subclass it), :func:`manifold_nets.testing.check_system`
 data                   :class:`TrajectoryDataset`, :func:`load_dataset`, :func:`save_dataset`,
-                       :func:`make_dataset`, :func:`load_or_generate`
+                       :func:`make_dataset`, :func:`load_or_generate`,
+                       :func:`collate_trajectories` (for ``torch.utils.data.DataLoader``)
 observer               :class:`ResidualObserver`, :class:`ObserverInputs`, :class:`RecurrentCore`,
                        :class:`GRUCore`
 training               :func:`fit`, :class:`TrainSettings`, :class:`MeasurementNoise`,
@@ -29,8 +30,13 @@ from .builders import build_observer
 from .checkpoint import load_checkpoint, save_checkpoint
 from .config import DatasetConfig, ModelConfig, RunConfig, TrainSettings
 from .cores import GRUCore, RecurrentCore
-from .data import DatasetError, TrajectoryDataset, load_dataset, save_dataset
-from .data import collate_trajectories
+from .data import (
+    DatasetError,
+    TrajectoryDataset,
+    collate_trajectories,
+    load_dataset,
+    save_dataset,
+)
 from .datasets import load_or_generate, make_dataset
 from .deploy import export_observer
 from .ekf import ErrorStateEKF

@@ -43,7 +43,7 @@ def generate(cfg: DictConfig) -> dict:
 
 
 def main() -> None:
-    """The command-line entry (config root ``configs/``, primary config ``generate.yaml``)."""
+    """The command-line entry (configs from the package ``manifold_nets_configs``, primary config ``generate.yaml``)."""
     import hydra
 
     hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="generate")(generate)()

@@ -252,7 +252,7 @@ def _hydra_main(cfg: DictConfig) -> float | None:
 
 
 def main() -> None:
-    """The command-line entry (config root ``configs/``, primary config ``train.yaml``)."""
+    """The command-line entry (configs from the package ``manifold_nets_configs``, primary config ``train.yaml``)."""
     import hydra
 
     hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")(_hydra_main)()
