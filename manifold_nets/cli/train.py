@@ -157,8 +157,7 @@ def train(
         model, parts["train"], parts["val"], settings, out_dir=out_dir, seed=int(cfg.seed),
         transform=noise, config=OmegaConf.to_container(cfg, resolve=True), on_epoch=on_epoch,
     )
-    best = load_checkpoint(result.best_path, model.signature(), map_location=model.device)
-    model.load_state_dict(best["model"])
+    load_weights(model, result.best_path, model.device)
     info.update(
         best_epoch=result.best_epoch,
         best_val_loss=result.best_val_loss,
