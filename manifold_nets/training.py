@@ -117,11 +117,32 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
         )
     for name in ("epochs", "batch_size", "eval_batch_size"):
         val = getattr(settings, name)
-        low = 0 if name == "epochs" else 1
-        if isinstance(val, bool) or not isinstance(val, int) or val < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {val!r}.")
+        if not _is_int(val) or val < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {val!r}.")
+    for name, none in (
+        ("max_batches", "the whole training split"),
+        ("threads", "torch's default"),
+    ):
+        val = getattr(settings, name)
+        if val is not None and (not _is_int(val) or val < 1):
+            raise ValueError(f"{name} must be an integer >= 1 or None (null: {none}), got {val!r}.")
+    clip = settings.grad_clip
+    if clip is not None and (
+        isinstance(clip, bool)
+        or not isinstance(clip, (int, float))
+        or not (math.isfinite(clip) and clip > 0)
+    ):
+        raise ValueError(
+            f"grad_clip must be > 0 or None (null: no clipping), got {clip!r}; it is the largest "
+            "norm the gradient is clipped to (a negative one would ascend, zero would freeze the "
+            "model), e.g. 1.0."
+        )
     check_schedule(settings.schedule, float(settings.lr), float(settings.lr_min))
     return settings
+
+
+def _is_int(val) -> bool:
+    return isinstance(val, int) and not isinstance(val, bool)
 
 
 def learning_rate(

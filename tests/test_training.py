@@ -261,6 +261,26 @@ def test_evaluation_table_and_figure(tmp_path):
         evaluate(model, data, skip=20)
 
 
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"epochs": 0}, "epochs must be an integer >= 1, got 0."),
+        ({"max_batches": 0}, "max_batches must be an integer >= 1 or None (null: the whole "
+                             "training split), got 0."),
+        ({"grad_clip": -1.0}, "grad_clip must be > 0 or None (null: no clipping), got -1.0"),
+        ({"grad_clip": 0.0}, "grad_clip must be > 0 or None (null: no clipping), got 0.0"),
+        ({"threads": 0}, "threads must be an integer >= 1 or None (null: torch's default), got 0."),
+    ],
+)
+def test_nonsense_settings_fail_before_any_work(tmp_path, kwargs, message):
+    # max_batches=0 made no optimizer step and logged a loss of 0.0; epochs=0 kept the untrained
+    # model as "learned"; a negative grad_clip ascends, zero freezes the model
+    with pytest.raises(ValueError) as err:
+        train_model(make_model(), make_data(8), make_data(4, seed=1), tmp_path / "run", **kwargs)
+    assert str(err.value).startswith(message)
+    assert not (tmp_path / "run").exists()
+
+
 def _saved(tmp_path, **change):
     """A checkpoint of ``make_model()`` with fields changed (``None``: removed)."""
     model = make_model()

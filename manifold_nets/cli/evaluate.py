@@ -151,7 +151,7 @@ def _hydra_main(cfg: DictConfig) -> float | None:
     """Evaluates and returns the run's objective (``objective=``, e.g. ``'R est'``) to a sweeper."""
     from hydra.core.hydra_config import HydraConfig
 
-    from .train import run, sweeper_reads_the_objective
+    from .train import run, say_where_on_failure, sweeper_reads_the_objective
 
     if cfg.method.name == "learned" and not cfg.method.target and not cfg.eval.checkpoint:
         raise ValueError(
@@ -160,7 +160,9 @@ def _hydra_main(cfg: DictConfig) -> float | None:
             "manifold_nets.cli.train."
         )
     required = sweeper_reads_the_objective(cfg)
-    return run(cfg, HydraConfig.get().runtime.output_dir, objective_required=required)["objective"]
+    out_dir = HydraConfig.get().runtime.output_dir
+    with say_where_on_failure(out_dir):
+        return run(cfg, out_dir, objective_required=required)["objective"]
 
 
 def main() -> None:
