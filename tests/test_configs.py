@@ -400,6 +400,37 @@ def test_a_system_that_generates_nan_is_named_not_a_file(tmp_path):
     assert not list((tmp_path / "data").glob("*.npz"))
 
 
+def test_results_json_is_valid_json_with_undefined_values_as_null(tmp_path):
+    # at sigma 0 the measurement error is 0 and the reduction undefined: it was a bare NaN
+    run(_compose(*_tiny(tmp_path / "data", "method=raw", "eval.sigmas=[0.0]")), tmp_path / "run")
+
+    def strict(name):
+        def refuse(const):
+            raise ValueError(f"{name} holds {const}: not JSON")
+
+        return json.loads((tmp_path / "run" / "results" / name).read_text(), parse_constant=refuse)
+
+    (row,) = strict("metrics.json")["table"]
+    assert row["R meas"] == 0.0 and row["R reduction %"] is None
+    assert strict("curves.json")["0"]["R meas"][0] is None  # no measurement at k = 0
+
+
+def test_a_checkpoint_with_nan_weights_fails_the_evaluation_and_writes_no_results(tmp_path):
+    from manifold_nets.checkpoint import save_checkpoint
+    from manifold_nets.evaluation import EstimatesNotFinite
+
+    cache = tmp_path / "data"
+    run(_compose(*_tiny(cache)), tmp_path / "run")
+    ckpt = torch.load(tmp_path / "run" / "checkpoints" / "best.pt", weights_only=True)
+    name = next(iter(ckpt["model"]))
+    ckpt["model"][name].view(-1)[0] = float("nan")
+    save_checkpoint(tmp_path / "nan.pt", {k: v for k, v in ckpt.items() if k != "format"})
+    with pytest.raises(EstimatesNotFinite, match=r"^default: the estimates are not finite "
+                       r"\(NaN/Inf\) in 4 of 4 sequences, the first in sequence 0"):
+        run(_compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'nan.pt'}")), tmp_path / "ev")
+    assert not (tmp_path / "ev" / "results" / "metrics.json").exists()  # was: NaN rows, exit 0
+
+
 def test_the_command_refuses_a_negative_grad_clip_and_says_where_its_folder_is(tmp_path):
     out_dir = tmp_path / "out"
     cmd = [sys.executable, "-m", "manifold_nets.cli.train", *_tiny(tmp_path / "data"),

@@ -281,6 +281,30 @@ def test_nonsense_settings_fail_before_any_work(tmp_path, kwargs, message):
     assert not (tmp_path / "run").exists()
 
 
+def nan_model():
+    model = make_model()
+    with torch.no_grad():
+        next(model.parameters())[0, 0] = float("nan")
+    return model
+
+
+def test_nan_weights_fail_the_evaluation_naming_the_method_and_the_sequence():
+    from manifold_nets.evaluation import EstimatesNotFinite
+
+    data = make_data(6, t=20, sigma=0.1, seed=3)
+    with pytest.raises(
+        EstimatesNotFinite,
+        match=r"^learned: the estimates are not finite \(NaN/Inf\) in 6 of 6 sequences, the "
+        r"first in sequence 0 from step 1 on; no metric",
+    ):
+        evaluate(nan_model(), data, EmbeddingSystem(), skip=5)
+    est = GROUP.identity((6, 21), dtype=torch.float64)
+    est[4, 7, 0] = float("inf")  # one sequence, one step
+    with pytest.raises(EstimatesNotFinite, match="in 1 of 6 sequences, the first in sequence 4 "
+                       "from step 7 on"):
+        evaluate(make_model(), data, EmbeddingSystem(), skip=5, estimates=est)
+
+
 def _saved(tmp_path, **change):
     """A checkpoint of ``make_model()`` with fields changed (``None``: removed)."""
     model = make_model()
