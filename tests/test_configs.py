@@ -413,6 +413,10 @@ def test_results_json_is_valid_json_with_undefined_values_as_null(tmp_path):
     (row,) = strict("metrics.json")["table"]
     assert row["R meas"] == 0.0 and row["R reduction %"] is None
     assert strict("curves.json")["0"]["R meas"][0] is None  # no measurement at k = 0
+    from manifold_nets.results import collect
+
+    (read,) = collect(tmp_path / "run")  # the sweep tables read the null back as NaN
+    assert read["R reduction %"] != read["R reduction %"]
 
 
 def test_a_checkpoint_with_nan_weights_fails_the_evaluation_and_writes_no_results(tmp_path):
