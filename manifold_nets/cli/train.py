@@ -67,7 +67,14 @@ from manifold_nets.training import EpochCallback, check_settings, fit, validatio
 from . import CONFIG_PATH
 from .evaluate import absolute, check_sigmas, evaluate
 
-__all__ = ["check_config", "main", "run", "sweeper_reads_the_objective", "train"]
+__all__ = [
+    "check_config",
+    "main",
+    "run",
+    "say_where_on_failure",
+    "sweeper_reads_the_objective",
+    "train",
+]
 
 log = logging.getLogger(__name__)
 
