@@ -44,13 +44,17 @@ def torch_dtype(name: str, key: str) -> torch.dtype:
 
 def build_system(system_cfg: Any) -> System:
     """The system of a ``system`` config (``_target_`` and its parameters), checked to be a
-    :class:`~manifold_nets.system.System`."""
+    :class:`~manifold_nets.system.System`. A ``ValueError`` or ``TypeError`` of the system's
+    constructor (parameters it refuses) comes through as it was raised."""
     from hydra.errors import InstantiationException
     from hydra.utils import instantiate
 
     try:
         system = instantiate(system_cfg)
     except InstantiationException as err:
+        if isinstance(err.__cause__, (ValueError, TypeError)):
+            # the system refused its parameters: its own message, not hydra's wrapping of it
+            raise err.__cause__ from None
         if not isinstance(err.__cause__, ImportError):
             raise
         target = system_cfg.get("_target_") if hasattr(system_cfg, "get") else None
@@ -157,12 +161,31 @@ def build_estimator_factory(system: System, method: MethodConfig | Any) -> Calla
 
 
 def resolve_device(name: str) -> torch.device:
-    """``cpu``, ``cuda[:i]`` or ``auto``; a clear error when CUDA is asked for but missing."""
+    """``cpu``, ``cuda[:i]`` or ``auto`` (or another torch device type this machine has, e.g.
+    ``mps``); a ``ValueError`` naming ``train.device`` for a name that is not a device, or a
+    ``RuntimeError`` for one this machine does not have."""
     if name == "auto":
         return torch.device("cuda" if torch.cuda.is_available() else "cpu")
-    dev = torch.device(name)
-    if dev.type == "cuda" and not torch.cuda.is_available():
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError, ValueError):
+        raise ValueError(
+            f"train.device={name!r} is not a device; use cpu, cuda, cuda:<index> or auto (cuda "
+            "when available)."
+        ) from None
+    if dev.type == "cpu":
+        return dev
+    backend = getattr(torch, dev.type, None)
+    available = getattr(backend, "is_available", None)
+    if not (callable(available) and available()):
         raise RuntimeError(
-            f"train.device={name!r} but CUDA is not available here; use train.device=cpu."
+            f"train.device={name!r} but {dev.type.upper()} is not available here; use "
+            "train.device=cpu (or auto)."
+        )
+    count = getattr(backend, "device_count", None)
+    if dev.index is not None and callable(count) and dev.index >= count():
+        raise RuntimeError(
+            f"train.device={name!r} but this machine has {count()} {dev.type} device(s), "
+            f"numbered from 0; use train.device={dev.type}:0 (or auto)."
         )
     return dev

@@ -30,7 +30,9 @@ __all__ = [
     "CheckpointError",
     "save_checkpoint",
     "load_checkpoint",
+    "check_contents",
     "check_signature",
+    "load_state",
     "resolve_checkpoint",
     "load_weights",
 ]
@@ -82,8 +84,8 @@ def load_checkpoint(
     """Reads a checkpoint with ``torch.load(weights_only=True)`` and checks it.
 
     Raises :class:`CheckpointError` for a missing file, a file that is not a manifold_nets
-    checkpoint, or (given ``expected_signature``, e.g. ``model.signature()``) a checkpoint of
-    another model.
+    checkpoint, fields missing or of the wrong type (:func:`check_contents`), or (given
+    ``expected_signature``, e.g. ``model.signature()``) a checkpoint of another model.
     """
     path = Path(path)
     if not path.is_file():
@@ -98,9 +100,93 @@ def load_checkpoint(
     if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
         fmt = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
         raise CheckpointError(f"{path} has format {fmt!r}, expected {FORMAT!r}.")
+    check_contents(ckpt, path)
     if expected_signature is not None:
         check_signature(ckpt["signature"], expected_signature, where=str(path))
     return ckpt
+
+
+def _bad(path, key: str, why: str) -> CheckpointError:
+    return CheckpointError(
+        f"{path}: the field {key!r} {why}. The file is damaged or was not written by "
+        "manifold_nets; use another checkpoint (a run's checkpoints/best.pt or last.pt)."
+    )
+
+
+def _kind(value) -> str:
+    return f"{value!r}" if isinstance(value, (int, float, str)) else type(value).__name__
+
+
+def check_contents(ckpt: dict, path: str | os.PathLike = "checkpoint") -> None:
+    """Raises :class:`CheckpointError` naming ``path`` and the field unless the checkpoint's
+    fields have the types :func:`save_checkpoint` writes (the required ``model``, ``signature``,
+    ``config``, ``epoch``; the optional ``best``, ``optimizer``, ``rng``, ``history``)."""
+    for key in ("model", "signature", "config", "epoch"):
+        if key not in ckpt:
+            raise _bad(path, key, f"is missing (the file has {sorted(ckpt)})")
+    model = ckpt["model"]
+    if not isinstance(model, dict) or not all(
+        isinstance(k, str) and isinstance(v, torch.Tensor) for k, v in model.items()
+    ):
+        raise _bad(path, "model", f"must be a state_dict (names to tensors), got {_kind(model)}")
+    for key in ("signature", "config"):
+        if not isinstance(ckpt[key], dict):
+            raise _bad(path, key, f"must be a dict, got {_kind(ckpt[key])}")
+    epoch = ckpt["epoch"]
+    if isinstance(epoch, bool) or not isinstance(epoch, int) or epoch < 0:
+        raise _bad(path, "epoch", f"must be an integer >= 0, got {_kind(epoch)}")
+    if "best" in ckpt:
+        best = ckpt["best"]
+        ok = (
+            isinstance(best, dict)
+            and isinstance(best.get("epoch"), int)
+            and not isinstance(best.get("epoch"), bool)
+            and isinstance(best.get("val_loss"), (int, float))
+        )
+        if not ok:
+            raise _bad(
+                path, "best", f"must be {{'epoch': int, 'val_loss': float}}, got {_kind(best)}"
+            )
+    if "optimizer" in ckpt:
+        opt = ckpt["optimizer"]
+        if not (isinstance(opt, dict) and {"state", "param_groups"} <= set(opt)):
+            raise _bad(path, "optimizer", "must be an optimizer's state_dict (state, param_groups)")
+    if "rng" in ckpt:
+        rng = ckpt["rng"]
+        for name in ("generator", "torch"):
+            state = rng.get(name) if isinstance(rng, dict) else None
+            if not (isinstance(state, torch.Tensor) and state.dtype == torch.uint8):
+                raise _bad(
+                    path, f"rng.{name}", f"must be a generator state (a uint8 tensor), got "
+                    f"{_kind(state)}"
+                )
+    if "history" in ckpt and not (
+        isinstance(ckpt["history"], list) and all(isinstance(r, dict) for r in ckpt["history"])
+    ):
+        raise _bad(path, "history", "must be a list of log rows (dicts)")
+
+
+def load_state(model: torch.nn.Module, ckpt: dict, path: str | os.PathLike) -> None:
+    """``model.load_state_dict(ckpt["model"])``, or a :class:`CheckpointError` naming ``path``
+    when the tensors do not fit the model (a missing or unexpected name, a wrong shape); checked
+    before any is copied, so a refused checkpoint leaves the model as it was."""
+    state, own = ckpt["model"], model.state_dict()
+    problems = [f"missing {k}" for k in own if k not in state]
+    problems += [f"unexpected {k}" for k in state if k not in own]
+    problems += [
+        f"{k}: checkpoint {tuple(state[k].shape)}, model {tuple(v.shape)}"
+        for k, v in own.items()
+        if k in state and state[k].shape != v.shape
+    ]
+    if problems:
+        more = f"; {len(problems) - 5} more" if len(problems) > 5 else ""
+        shown = "; ".join(problems[:5]) + more
+        raise _bad(path, "model", f"does not fit the model ({shown})")
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as err:
+        detail = " ".join(str(err).split())
+        raise _bad(path, "model", f"does not fit the model ({detail[:500]})") from None
 
 
 def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:
@@ -124,5 +210,5 @@ def load_weights(
     """
     path = resolve_checkpoint(where, name="best.pt")
     ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=map_location)
-    model.load_state_dict(ckpt["model"])
+    load_state(model, ckpt, path)
     return path, ckpt

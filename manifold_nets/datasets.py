@@ -197,7 +197,8 @@ def _read_or_make(system: System, cfg: DatasetConfig, request: dict, path: Path,
         start = time.perf_counter()
         ds = make_dataset(system, **request, show_progress=cfg.progress)
         made = time.perf_counter() - start
-        ds.validate(system.group, where=str(path))
+        _check_generated(system, ds, path)
+        ds.validate(system.group, where=f"the data generated for {path}")
         save_dataset(ds, path)
         log.info(
             "generated %s (%d x %d, sigma=%g) in %.2f s, total %.2f s",
@@ -205,6 +206,22 @@ def _read_or_make(system: System, cfg: DatasetConfig, request: dict, path: Path,
             time.perf_counter() - start,
         )
     return ds
+
+
+def _check_generated(system: System, ds: TrajectoryDataset, path: Path) -> None:
+    """Raises :class:`DatasetError` naming the system when its simulation made NaN or Inf
+    (before anything is written: the file at ``path`` is not to blame, the parameters are)."""
+    for name in ("states", "measurements", "inputs"):
+        t = getattr(ds, name)
+        finite = torch.isfinite(t)
+        if not bool(finite.all()):
+            seq = int((~finite).flatten(1).any(1).nonzero()[0, 0])
+            raise DatasetError(
+                f"the system {system!r} generated non-finite values (NaN/Inf) in its {name} "
+                f"({int((~finite).sum())} of them; the first in sequence {seq}); nothing was "
+                f"written to {path}. Check the system's parameters (system.* in the config): a "
+                "step length or a range too large overflows the simulation."
+            )
 
 
 def training_data(

@@ -34,6 +34,7 @@ from .observer import ResidualObserver
 from .progress import progress_bar
 
 __all__ = [
+    "EstimatesNotFinite",
     "EvalResult",
     "ObserverEstimator",
     "rollout",
@@ -112,6 +113,26 @@ def _pad_front(t: torch.Tensor, length: int) -> torch.Tensor:
     return torch.cat([t.new_full((t.shape[0], length - t.shape[1]), math.nan), t], dim=1)
 
 
+class EstimatesNotFinite(FloatingPointError):
+    """An estimator returned NaN or Inf estimates (NaN weights, a diverged filter)."""
+
+
+def _check_finite(name: str, est: torch.Tensor) -> None:
+    """Raises :class:`EstimatesNotFinite` naming the method and the first bad sequence."""
+    finite = torch.isfinite(est).reshape(*est.shape[:2], -1).all(-1)  # (N, T+1)
+    if bool(finite.all()):
+        return
+    bad = ~finite.all(1)
+    seq = int(bad.nonzero()[0, 0])
+    step = int((~finite[seq]).nonzero()[0, 0])
+    raise EstimatesNotFinite(
+        f"{name}: the estimates are not finite (NaN/Inf) in {int(bad.sum())} of {len(bad)} "
+        f"sequences, the first in sequence {seq} from step {step} on; no metric is computed from "
+        "them. A checkpoint with NaN weights (a diverged training), or an estimator that "
+        "diverged: check the method's weights or parameters."
+    )
+
+
 def evaluate(
     method,
     data: TrajectoryDataset,
@@ -128,7 +149,7 @@ def evaluate(
     :class:`manifold_nets.system.System`) supplies ``metrics``, ``measurement_errors`` and the
     group the estimates should lie on; without one the per-factor errors are computed from the
     estimator's group and there is no measurement column. ``estimates`` skips the estimation
-    when already computed (``seconds`` is then 0).
+    when already computed (``seconds`` is then 0). NaN/Inf estimates: :class:`EstimatesNotFinite`.
     """
     import time
 
@@ -153,6 +174,7 @@ def evaluate(
             f"{method.name}: estimates of shape {tuple(est.shape)}, expected {expected} "
             "(x_0 .. x_T of every sequence)."
         )
+    _check_finite(method.name, est)
     group = system.group if system is not None else method.group
     states = data.states.to(est.dtype)
     if system is not None and callable(getattr(system, "metrics", None)):

@@ -20,7 +20,7 @@ import statistics
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["collect", "summarize", "collect_runs", "comparison_rows", "step_curves"]
+__all__ = ["collect", "summarize", "collect_runs", "comparison_rows", "read_metrics", "step_curves"]
 
 
 def _overrides(job: Path) -> dict[str, str]:
@@ -46,7 +46,7 @@ def collect(root: str | Path) -> list[dict]:
     rows = []
     for metrics_path in sorted(root.rglob("results/metrics.json"), key=lambda p: str(p)):
         job = metrics_path.parent.parent
-        metrics = json.loads(metrics_path.read_text())
+        metrics = read_metrics(metrics_path)
         over = {k: v for k, v in _overrides(job).items() if k != "seed"}
         base = {"job": str(job.relative_to(root)) or ".", **over, "seed": metrics.get("seed")}
         for key in ("best_epoch", "best_val_loss", "test_loss"):
@@ -59,6 +59,16 @@ def collect(root: str | Path) -> list[dict]:
             f"no results/metrics.json under {root}: did the jobs finish? (a job writes it last)"
         )
     return rows
+
+
+def read_metrics(path: str | Path) -> dict:
+    """A run's ``results/metrics.json``, its table's undefined values (written as ``null``, e.g.
+    a reduction against a measurement error of 0) read back as NaN, as the run had them."""
+    metrics = json.loads(Path(path).read_text())
+    metrics["table"] = [
+        {k: math.nan if v is None else v for k, v in r.items()} for r in metrics.get("table", [])
+    ]
+    return metrics
 
 
 _KEYS = ("job", "seed", "best_epoch", "best_val_loss", "test_loss", "sequences", "steps", "seconds")
@@ -110,7 +120,7 @@ def collect_runs(paths: Sequence[str | Path]) -> list[dict]:
                 f"no results/metrics.json under {root}: did the run finish? (it is written last)"
             )
         for path in found:
-            metrics = json.loads(path.read_text())
+            metrics = read_metrics(path)
             cpath = path.with_name("curves.json")
             curves = json.loads(cpath.read_text()) if cpath.is_file() else {}
             runs.append({"dir": str(path.parent.parent), "metrics": metrics, "curves": curves})

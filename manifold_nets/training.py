@@ -53,7 +53,13 @@ import torch
 from tqdm.auto import tqdm
 
 from .atomic import write_text_atomic
-from .checkpoint import CheckpointError, load_checkpoint, resolve_checkpoint, save_checkpoint
+from .checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    load_state,
+    resolve_checkpoint,
+    save_checkpoint,
+)
 from .config import TrainSettings
 from .data import TrajectoryDataset
 from .losses import embedding_mse
@@ -111,11 +117,32 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
         )
     for name in ("epochs", "batch_size", "eval_batch_size"):
         val = getattr(settings, name)
-        low = 0 if name == "epochs" else 1
-        if isinstance(val, bool) or not isinstance(val, int) or val < low:
-            raise ValueError(f"{name} must be an integer >= {low}, got {val!r}.")
+        if not _is_int(val) or val < 1:
+            raise ValueError(f"{name} must be an integer >= 1, got {val!r}.")
+    for name, none in (
+        ("max_batches", "the whole training split"),
+        ("threads", "torch's default"),
+    ):
+        val = getattr(settings, name)
+        if val is not None and (not _is_int(val) or val < 1):
+            raise ValueError(f"{name} must be an integer >= 1 or None (null: {none}), got {val!r}.")
+    clip = settings.grad_clip
+    if clip is not None and (
+        isinstance(clip, bool)
+        or not isinstance(clip, (int, float))
+        or not (math.isfinite(clip) and clip > 0)
+    ):
+        raise ValueError(
+            f"grad_clip must be > 0 or None (null: no clipping), got {clip!r}; it is the largest "
+            "norm the gradient is clipped to (a negative one would ascend, zero would freeze the "
+            "model), e.g. 1.0."
+        )
     check_schedule(settings.schedule, float(settings.lr), float(settings.lr_min))
     return settings
+
+
+def _is_int(val) -> bool:
+    return isinstance(val, int) and not isinstance(val, bool)
 
 
 def learning_rate(
@@ -291,12 +318,29 @@ class _Trainer:
         """Restores everything from ``where``'s ``last.pt``; returns the next epoch."""
         path = resolve_checkpoint(where)
         ckpt = load_checkpoint(path, expected_signature=self.signature, map_location=self.device)
-        if "optimizer" not in ckpt or "rng" not in ckpt:
-            raise CheckpointError(f"{path} holds no optimizer/RNG state: resume from a last.pt.")
-        self.model.load_state_dict(ckpt["model"])
-        self.opt.load_state_dict(ckpt["optimizer"])
-        self.gen.set_state(ckpt["rng"]["generator"])
-        torch.set_rng_state(ckpt["rng"]["torch"])
+        if "optimizer" not in ckpt or "rng" not in ckpt or "best" not in ckpt:
+            raise CheckpointError(
+                f"{path} holds no optimizer/RNG/best state: resume from a last.pt."
+            )
+        for name in ("generator", "torch"):  # tried on a scratch generator: nothing changes yet
+            try:
+                torch.Generator().set_state(ckpt["rng"][name].cpu())
+            except RuntimeError as err:
+                raise CheckpointError(
+                    f"{path}: the field 'rng.{name}' is not a generator state ({err}). The file "
+                    "is damaged; resume from another last.pt, or start afresh."
+                ) from None
+        load_state(self.model, ckpt, path)
+        try:
+            self.opt.load_state_dict(ckpt["optimizer"])
+        except (ValueError, KeyError, TypeError, RuntimeError) as err:
+            raise CheckpointError(
+                f"{path}: the field 'optimizer' does not fit this model's optimizer "
+                f"({type(err).__name__}: {str(err)[:300]}). The file is damaged; resume from "
+                "another last.pt, or start afresh."
+            ) from None
+        self.gen.set_state(ckpt["rng"]["generator"].cpu())
+        torch.set_rng_state(ckpt["rng"]["torch"].cpu())
         self.history = list(ckpt.get("history", []))
         self.best = dict(ckpt["best"])
         if Path(path).resolve() != self.last_path.resolve():  # resuming into a new folder

@@ -264,7 +264,7 @@ def test_multirun_and_sweep_table(tmp_path):
         "-m",
         *_tiny(tmp_path / "data"),
         "seed=0,1",
-        "train.epochs=0",
+        "train.max_batches=1",  # one step: epochs=0 is refused
         f"hydra.sweep.dir={sweep_dir}",
     ]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -355,3 +355,97 @@ def test_noise_levels_mix_measurements_per_sequence(tmp_path):
         assert bool((is_clean ^ is_noisy).all())  # every sequence from exactly one level
     assert 0 < int(is_clean.sum()) < len(is_clean) or len(is_clean) < 4
     assert mixed["train"].meta["noise_levels"] == [0.0, 0.3]
+
+
+@pytest.mark.parametrize(
+    "override, message",
+    [
+        ("train.grad_clip=-1", "train.grad_clip must be > 0 or None (null: no clipping), got -1.0"),
+        ("train.grad_clip=0", "train.grad_clip must be > 0 or None (null: no clipping), got 0.0"),
+        ("train.max_batches=0", "train.max_batches must be an integer >= 1 or None (null: the "
+                                "whole training split), got 0."),
+        ("train.epochs=0", "train.epochs must be an integer >= 1, got 0."),
+        ("train.threads=0", "train.threads must be an integer >= 1 or None (null: torch's "
+                            "default), got 0."),
+        ("train.device=tpu", "train.device='tpu' is not a device; use cpu, cuda, cuda:<index> "
+                             "or auto"),
+        ("system.dt=1", "RigidBody: one step can turn by up to sqrt(3) * (omega_range + "
+                        "bias_range) * dt = sqrt(3) * (1 + 10) * 1 = 19.05 rad, which must be < "
+                        "pi"),
+        ("system.bias_range=100", "RigidBody: one step can turn by up to sqrt(3) * (omega_range "
+                                  "+ bias_range) * dt = sqrt(3) * (1 + 100) * 0.1 = 17.49 rad"),
+        ("system.dt=1e300", "RigidBody: one step can turn by up to"),
+    ],
+)
+def test_nonsense_values_fail_before_any_work_and_write_nothing(tmp_path, override, message):
+    with pytest.raises(ValueError) as err:
+        run(_compose(*_tiny(tmp_path / "data", override)), tmp_path / "run")
+    assert str(err.value).startswith(message), str(err.value)
+    assert not (tmp_path / "run").exists()  # not even config.yaml
+    assert not (tmp_path / "data").exists()
+
+
+def test_a_system_that_generates_nan_is_named_not_a_file(tmp_path):
+    from manifold_nets.data import DatasetError
+
+    # the turn bound holds (no rotation), but positions of 1e10 m/s * 1e300 s overflow
+    over = ["system.omega_range=0", "system.bias_range=0", "system.velocity_range=1e10",
+            "system.dt=1e300"]  # fmt: skip
+    with pytest.raises(DatasetError) as err:  # was: "... regenerate the data (a corrupt file:
+        run(_compose(*_tiny(tmp_path / "data", *over)), tmp_path / "run")  # delete it) ..."
+    msg = str(err.value)
+    assert msg.startswith("the system RigidBody(") and "generated non-finite values (NaN/Inf) in"
+    assert "nothing was written to" in msg and "Check the system's parameters (system.*" in msg
+    assert "corrupt" not in msg
+    assert not list((tmp_path / "data").glob("*.npz"))
+
+
+def test_results_json_is_valid_json_with_undefined_values_as_null(tmp_path):
+    # at sigma 0 the measurement error is 0 and the reduction undefined: it was a bare NaN
+    run(_compose(*_tiny(tmp_path / "data", "method=raw", "eval.sigmas=[0.0]")), tmp_path / "run")
+
+    def strict(name):
+        def refuse(const):
+            raise ValueError(f"{name} holds {const}: not JSON")
+
+        return json.loads((tmp_path / "run" / "results" / name).read_text(), parse_constant=refuse)
+
+    (row,) = strict("metrics.json")["table"]
+    assert row["R meas"] == 0.0 and row["R reduction %"] is None
+    assert strict("curves.json")["0"]["R meas"][0] is None  # no measurement at k = 0
+    from manifold_nets.results import collect
+
+    (read,) = collect(tmp_path / "run")  # the sweep tables read the null back as NaN
+    assert read["R reduction %"] != read["R reduction %"]
+
+
+def test_a_checkpoint_with_nan_weights_fails_the_evaluation_and_writes_no_results(tmp_path):
+    from manifold_nets.checkpoint import save_checkpoint
+    from manifold_nets.evaluation import EstimatesNotFinite
+
+    cache = tmp_path / "data"
+    run(_compose(*_tiny(cache)), tmp_path / "run")
+    ckpt = torch.load(tmp_path / "run" / "checkpoints" / "best.pt", weights_only=True)
+    name = next(iter(ckpt["model"]))
+    ckpt["model"][name].view(-1)[0] = float("nan")
+    save_checkpoint(tmp_path / "nan.pt", {k: v for k, v in ckpt.items() if k != "format"})
+    with pytest.raises(EstimatesNotFinite, match=r"^default: the estimates are not finite "
+                       r"\(NaN/Inf\) in 4 of 4 sequences, the first in sequence 0"):
+        run(_compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'nan.pt'}")), tmp_path / "ev")
+    assert not (tmp_path / "ev" / "results" / "metrics.json").exists()  # was: NaN rows, exit 0
+
+
+def test_the_command_refuses_a_negative_grad_clip_and_says_where_its_folder_is(tmp_path):
+    out_dir = tmp_path / "out"
+    cmd = [sys.executable, "-m", "manifold_nets.cli.train", *_tiny(tmp_path / "data"),
+           "train.grad_clip=-1", f"hydra.run.dir={out_dir}"]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run(
+        cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert out.returncode != 0  # was: exit 0, epoch 0 as the best
+    assert "train.grad_clip must be > 0 or None (null: no clipping), got -1.0" in out.stderr
+    assert f"the run failed; its folder (hydra's files, and what the run wrote): {out_dir}" in (
+        out.stdout + out.stderr
+    )
+    assert sorted(p.name for p in out_dir.iterdir()) == [".hydra", "train.log"]  # hydra's own

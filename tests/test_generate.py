@@ -93,7 +93,7 @@ def test_cache_reuses_the_file_and_regenerates_on_change(tmp_path, monkeypatch):
     assert {f: f.stat().st_mtime_ns for f in files} == stamps
     monkeypatch.undo()
     load_or_generate(body, tiny(tmp_path, sigma=0.1))  # changed config: a new file
-    load_or_generate(RigidBody(dt=0.2), tiny(tmp_path))  # changed system: a new file
+    load_or_generate(RigidBody(dt=0.15), tiny(tmp_path))  # changed system: a new file
     assert len(list(tmp_path.glob("*.npz"))) == 3
     assert not list(tmp_path.glob(".*tmp"))
 

@@ -85,9 +85,9 @@ def test_missing_values_fail_clearly_never_nan():
 def test_the_command_returns_the_objective(tmp_path):
     m = run(_tiny(tmp_path), tmp_path / "a")
     assert m["objective"] == m["best_val_loss"] and math.isfinite(m["objective"])
-    m = run(_tiny(tmp_path, "objective=R est@0.1", "train.epochs=0"), tmp_path / "b")
+    m = run(_tiny(tmp_path, "objective=R est@0.1", "train.max_batches=1"), tmp_path / "b")
     assert m["objective"] == m["table"][0]["R est"]
-    m = run(_tiny(tmp_path, "objective=test_loss", "train.epochs=0"), tmp_path / "c")
+    m = run(_tiny(tmp_path, "objective=test_loss", "train.max_batches=1"), tmp_path / "c")
     assert m["objective"] == m["test_loss"]
 
 
@@ -101,7 +101,7 @@ def test_an_unknown_objective_fails_before_any_work(tmp_path):
 
 def test_a_column_the_table_lacks_fails_after_the_evaluation_naming_the_columns(tmp_path):
     with pytest.raises(ValueError, match="no column 'q est'; its metric columns: 'R est'"):
-        run(_tiny(tmp_path, "objective=q est", "train.epochs=0"), tmp_path / "run")
+        run(_tiny(tmp_path, "objective=q est", "train.max_batches=1"), tmp_path / "run")
     assert (tmp_path / "run" / "results" / "metrics.json").is_file()  # the work is kept
 
 

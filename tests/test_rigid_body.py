@@ -248,10 +248,10 @@ def test_step_and_measure_are_differentiable_for_a_filter():
 
 
 def test_config_and_repr():
-    body = RigidBody(dt=0.2)
-    assert body.config()["dt"] == 0.2 and "rtol" not in body.config()
+    body = RigidBody(dt=0.15)
+    assert body.config()["dt"] == 0.15 and "rtol" not in body.config()
     assert "rtol" in RigidBody(integrator="rk45").config()
-    assert "dt=0.2" in repr(body)
+    assert "dt=0.15" in repr(body)
     assert body.group.embedding_dim == body.measurement_dim == 18 and body.input_dim == 0
 
 

@@ -259,3 +259,110 @@ def test_evaluation_table_and_figure(tmp_path):
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     with pytest.raises(ValueError, match="skip"):
         evaluate(model, data, skip=20)
+
+
+@pytest.mark.parametrize(
+    "kwargs, message",
+    [
+        ({"epochs": 0}, "epochs must be an integer >= 1, got 0."),
+        ({"max_batches": 0}, "max_batches must be an integer >= 1 or None (null: the whole "
+                             "training split), got 0."),
+        ({"grad_clip": -1.0}, "grad_clip must be > 0 or None (null: no clipping), got -1.0"),
+        ({"grad_clip": 0.0}, "grad_clip must be > 0 or None (null: no clipping), got 0.0"),
+        ({"threads": 0}, "threads must be an integer >= 1 or None (null: torch's default), got 0."),
+    ],
+)
+def test_nonsense_settings_fail_before_any_work(tmp_path, kwargs, message):
+    # max_batches=0 made no optimizer step and logged a loss of 0.0; epochs=0 kept the untrained
+    # model as "learned"; a negative grad_clip ascends, zero freezes the model
+    with pytest.raises(ValueError) as err:
+        train_model(make_model(), make_data(8), make_data(4, seed=1), tmp_path / "run", **kwargs)
+    assert str(err.value).startswith(message)
+    assert not (tmp_path / "run").exists()
+
+
+def nan_model():
+    model = make_model()
+    with torch.no_grad():
+        next(model.parameters())[0, 0] = float("nan")
+    return model
+
+
+def test_nan_weights_fail_the_evaluation_naming_the_method_and_the_sequence():
+    from manifold_nets.evaluation import EstimatesNotFinite
+
+    data = make_data(6, t=20, sigma=0.1, seed=3)
+    with pytest.raises(
+        EstimatesNotFinite,
+        match=r"^learned: the estimates are not finite \(NaN/Inf\) in 6 of 6 sequences, the "
+        r"first in sequence 0 from step 1 on; no metric",
+    ):
+        evaluate(nan_model(), data, EmbeddingSystem(), skip=5)
+    est = GROUP.identity((6, 21), dtype=torch.float64)
+    est[4, 7, 0] = float("inf")  # one sequence, one step
+    with pytest.raises(EstimatesNotFinite, match="in 1 of 6 sequences, the first in sequence 4 "
+                       "from step 7 on"):
+        evaluate(make_model(), data, EmbeddingSystem(), skip=5, estimates=est)
+
+
+def _saved(tmp_path, **change):
+    """A checkpoint of ``make_model()`` with fields changed (``None``: removed)."""
+    model = make_model()
+    payload = {
+        "format": "manifold_nets.checkpoint/1", "model": model.state_dict(),
+        "signature": model.signature(), "config": {}, "epoch": 2,
+    }  # fmt: skip
+    payload.update(change)
+    payload = {k: v for k, v in payload.items() if v is not None}
+    torch.save(payload, tmp_path / "m.pt")
+    return tmp_path / "m.pt"
+
+
+def test_a_checkpoint_without_signature_is_refused_naming_the_file_and_field(tmp_path):
+    path = _saved(tmp_path, signature=None)  # was: KeyError: 'signature'
+    with pytest.raises(CheckpointError, match=r"m\.pt: the field 'signature' is missing \(the "
+                       r"file has \['config', 'epoch', 'format', 'model'\]\)\. The file is "
+                       "damaged or was not written by manifold_nets"):
+        load_checkpoint(path, expected_signature=make_model().signature())
+
+
+@pytest.mark.parametrize("epoch", ["3", 1.5, None])
+def test_a_checkpoint_with_a_non_integer_epoch_is_refused(tmp_path, epoch):
+    path = _saved(tmp_path, epoch=epoch)
+    what = "is missing" if epoch is None else f"must be an integer >= 0, got {epoch!r}"
+    with pytest.raises(CheckpointError, match=rf"m\.pt: the field 'epoch' {what}"):
+        load_checkpoint(path)
+
+
+def test_a_tensor_of_the_wrong_shape_is_refused_naming_the_file(tmp_path):
+    from manifold_nets.checkpoint import load_weights
+
+    state = make_model().state_dict()
+    name = next(iter(state))
+    state[name] = torch.zeros(3, 3)  # the signature still matches; a tensor does not
+    path = _saved(tmp_path, model=state)
+    model = make_model(seed=4)
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    with pytest.raises(CheckpointError, match=rf"m\.pt: the field 'model' does not fit the model "
+                       rf"\({name}: checkpoint \(3, 3\), model"):  # was: torch's RuntimeError
+        load_weights(model, path)
+    assert all(torch.equal(before[k], v) for k, v in model.state_dict().items())
+
+
+def test_resume_from_a_garbage_rng_state_is_refused_naming_the_file(tmp_path):
+    train, val = make_data(16, seed=0), make_data(4, seed=1)
+    train_model(make_model(), train, val, tmp_path / "a", epochs=1)
+    last = tmp_path / "a" / "checkpoints" / "last.pt"
+    ckpt = torch.load(last, weights_only=True)
+    ckpt["rng"]["generator"] = torch.zeros(5056, dtype=torch.uint8)  # the size, not a state
+    torch.save(ckpt, last)
+    state = torch.get_rng_state()
+    with pytest.raises(CheckpointError, match=r"last\.pt: the field 'rng\.generator' is not a "
+                       r"generator state \(Invalid mt19937 state\)"):
+        train_model(make_model(), train, val, tmp_path / "b", resume=str(tmp_path / "a"))
+    assert torch.equal(torch.get_rng_state(), state)  # nothing restored half way
+    ckpt["rng"] = {"generator": "garbage", "torch": ckpt["rng"]["torch"]}
+    torch.save(ckpt, last)
+    with pytest.raises(CheckpointError, match=r"last\.pt: the field 'rng\.generator' must be a "
+                       r"generator state \(a uint8 tensor\), got 'garbage'"):
+        train_model(make_model(), train, val, tmp_path / "b", resume=str(tmp_path / "a"))

@@ -38,7 +38,8 @@ Measurement ``y_{k+1} = (vec R^m_{k+1}, p^m_{k+1}, Omega^m_k, v^m_k)`` in ``R^18
 
 ``dt = 0.1`` s by default (the paper states none): the largest measured rate
 ``|Omega + b_Omega| <= sqrt(3) * 11`` then turns by at most 1.9 rad < pi in a step, so an
-observer that integrates the biased reading never wraps the exponential.
+observer that integrates the biased reading never wraps the exponential. The constructor
+refuses parameters that break this bound, ``sqrt(3) (omega_range + bias_range) dt < pi``.
 """
 
 from __future__ import annotations
@@ -132,6 +133,16 @@ class RigidBody(System):
         self.bias_range = _check_nonneg("bias_range", bias_range)
         self.omega_range = _check_nonneg("omega_range", omega_range)
         self.velocity_range = _check_nonneg("velocity_range", velocity_range)
+        rate = math.sqrt(3.0) * (self.omega_range + self.bias_range)  # largest rate
+        turn = rate * self.dt
+        if not turn < math.pi:  # the bound of the module docstring
+            raise ValueError(
+                "RigidBody: one step can turn by up to sqrt(3) * (omega_range + bias_range) * dt "
+                f"= sqrt(3) * ({self.omega_range:g} + {self.bias_range:g}) * {self.dt:g} = "
+                f"{turn:.4g} rad, which must be < pi: an observer or filter that integrates the "
+                "measured rate over a step would wrap the exponential. Use a smaller dt, "
+                f"omega_range or bias_range (dt < {math.pi / rate:.4g} s for these ranges)."
+            )
         self.pose_group = pose_group
         self._se3 = pose_group == "se3"
         if self._se3:

@@ -37,7 +37,7 @@ from manifold_nets.reporting import plot_errors, write_table
 
 from . import CONFIG_PATH
 
-__all__ = ["absolute", "check_sigmas", "evaluate", "main"]
+__all__ = ["absolute", "check_sigmas", "evaluate", "json_safe", "main", "to_json"]
 
 log = logging.getLogger(__name__)
 
@@ -50,6 +50,23 @@ def absolute(path: str) -> str:
         return to_absolute_path(path)
     except ValueError:  # hydra not initialised (tests, plain Python)
         return str(Path(path).absolute())
+
+
+def json_safe(value: Any) -> Any:
+    """``value`` with every float that is not finite (an undefined metric: the measurement
+    error at k = 0, a reduction against a measurement error of 0) replaced by ``None``."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    return value
+
+
+def to_json(value: Any, **kwargs) -> str:
+    """Valid JSON always (``allow_nan=False``): undefined values are written as ``null``."""
+    return json.dumps(json_safe(value), allow_nan=False, default=str, **kwargs)
 
 
 def check_sigmas(sigmas: Sequence[float]) -> list[float]:
@@ -131,9 +148,7 @@ def evaluate(
             "us/step": 1e6 * r.seconds / (len(data) * data.length),
         }
         rows.append(r.row)
-        curves[f"{sigma:g}"] = {
-            k: [None if math.isnan(x) else x for x in v.tolist()] for k, v in r.curves.items()
-        }
+        curves[f"{sigma:g}"] = {k: v.tolist() for k, v in r.curves.items()}
         if cfg.eval.plots:
             title = f"{what}: sigma = {sigma:g}, {len(data)} x {data.length} steps"
             plot_errors(r, res_dir / f"errors_sigma{sigma:g}.png", title=title)
@@ -141,8 +156,8 @@ def evaluate(
         log.info("sigma %g: %s", sigma, shown)
     _, md_path = write_table(rows, res_dir / "table", title=f"{what} (seed {cfg.seed})")
     metrics["table"] = rows
-    write_text_atomic(res_dir / "metrics.json", json.dumps(metrics, indent=1, default=str) + "\n")
-    write_text_atomic(res_dir / "curves.json", json.dumps(curves) + "\n")
+    write_text_atomic(res_dir / "metrics.json", to_json(metrics, indent=1) + "\n")
+    write_text_atomic(res_dir / "curves.json", to_json(curves) + "\n")
     log.info("results in %s\n%s", res_dir, md_path.read_text())
     return metrics
 
@@ -151,7 +166,7 @@ def _hydra_main(cfg: DictConfig) -> float | None:
     """Evaluates and returns the run's objective (``objective=``, e.g. ``'R est'``) to a sweeper."""
     from hydra.core.hydra_config import HydraConfig
 
-    from .train import run, sweeper_reads_the_objective
+    from .train import run, say_where_on_failure, sweeper_reads_the_objective
 
     if cfg.method.name == "learned" and not cfg.method.target and not cfg.eval.checkpoint:
         raise ValueError(
@@ -160,7 +175,9 @@ def _hydra_main(cfg: DictConfig) -> float | None:
             "manifold_nets.cli.train."
         )
     required = sweeper_reads_the_objective(cfg)
-    return run(cfg, HydraConfig.get().runtime.output_dir, objective_required=required)["objective"]
+    out_dir = HydraConfig.get().runtime.output_dir
+    with say_where_on_failure(out_dir):
+        return run(cfg, out_dir, objective_required=required)["objective"]
 
 
 def main() -> None:

@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import logging
 import time
+from contextlib import contextmanager
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -49,8 +50,14 @@ from omegaconf import DictConfig, OmegaConf
 
 from manifold_nets.atomic import write_text_atomic
 from manifold_nets.augmentation import MeasurementNoise
-from manifold_nets.builders import LEARNED_METHODS, build_observer, build_system, resolve_device
-from manifold_nets.checkpoint import load_checkpoint, load_weights
+from manifold_nets.builders import (
+    LEARNED_METHODS,
+    build_estimator_factory,
+    build_observer,
+    build_system,
+    resolve_device,
+)
+from manifold_nets.checkpoint import load_weights
 from manifold_nets.config import RunConfig
 from manifold_nets.datasets import training_data
 from manifold_nets.objective import objective_value, parse_objective
@@ -60,7 +67,14 @@ from manifold_nets.training import EpochCallback, check_settings, fit, validatio
 from . import CONFIG_PATH
 from .evaluate import absolute, check_sigmas, evaluate
 
-__all__ = ["check_config", "main", "run", "sweeper_reads_the_objective", "train"]
+__all__ = [
+    "check_config",
+    "main",
+    "run",
+    "say_where_on_failure",
+    "sweeper_reads_the_objective",
+    "train",
+]
 
 log = logging.getLogger(__name__)
 
@@ -157,8 +171,7 @@ def train(
         model, parts["train"], parts["val"], settings, out_dir=out_dir, seed=int(cfg.seed),
         transform=noise, config=OmegaConf.to_container(cfg, resolve=True), on_epoch=on_epoch,
     )
-    best = load_checkpoint(result.best_path, model.signature(), map_location=model.device)
-    model.load_state_dict(best["model"])
+    load_weights(model, result.best_path, model.device)
     info.update(
         best_epoch=result.best_epoch,
         best_val_loss=result.best_val_loss,
@@ -178,15 +191,21 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     ``metrics["objective"]`` the value of ``cfg.objective`` (``None`` when the run has no such
     loss and ``objective_required`` is false; with it true that fails before any work)."""
     _check_before_work(cfg, objective_required)
+    # the device and the system are checked (the system's constructor checks its parameters)
+    # before the run folder gets anything: a run refused here leaves no config.yaml behind
+    device = resolve_device(cfg.train.device)
+    system = build_system(cfg.system)
+    if cfg.method.name not in LEARNED_METHODS or cfg.method.target:
+        build_estimator_factory(system, cfg.method)  # an unknown method: refused now
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     write_text_atomic(out_dir / "config.yaml", OmegaConf.to_yaml(resolved))
-    if cfg.train.threads is not None:
+    if cfg.train.threads is not None:  # checked (>= 1) by check_settings
         torch.set_num_threads(int(cfg.train.threads))
     board = TensorBoardLog(out_dir / "tensorboard") if cfg.train.tensorboard else None
     try:
-        metrics = _train_and_evaluate(cfg, out_dir, board)
+        metrics = _train_and_evaluate(cfg, out_dir, board, system, device)
     finally:
         if board is not None:
             board.close()
@@ -197,10 +216,10 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     return metrics
 
 
-def _train_and_evaluate(cfg: DictConfig, out_dir: Path, board: TensorBoardLog | None) -> dict:
-    """The system, the observer (for the learned methods), training, the evaluation."""
-    device = resolve_device(cfg.train.device)
-    system = build_system(cfg.system)
+def _train_and_evaluate(
+    cfg: DictConfig, out_dir: Path, board: TensorBoardLog | None, system, device: torch.device
+) -> dict:
+    """The observer (for the learned methods), training, the evaluation."""
     model, info = None, {}
     if cfg.method.name in LEARNED_METHODS and not cfg.method.target:
         torch.manual_seed(int(cfg.seed))
@@ -247,8 +266,21 @@ def _hydra_main(cfg: DictConfig) -> float | None:
     from hydra.core.hydra_config import HydraConfig
 
     required = sweeper_reads_the_objective(cfg)
-    metrics = run(cfg, HydraConfig.get().runtime.output_dir, objective_required=required)
+    out_dir = HydraConfig.get().runtime.output_dir
+    with say_where_on_failure(out_dir):
+        metrics = run(cfg, out_dir, objective_required=required)
     return metrics["objective"]
+
+
+@contextmanager
+def say_where_on_failure(out_dir: str | Path):
+    """Logs the run folder when the run fails: hydra made it (its ``.hydra/`` and log) before
+    the run could check anything, so a refused run leaves it behind; this says where."""
+    try:
+        yield
+    except Exception:
+        log.error("the run failed; its folder (hydra's files, and what the run wrote): %s", out_dir)
+        raise
 
 
 def main() -> None:
