@@ -45,6 +45,7 @@ __all__ = [
     "save_dataset",
     "load_dataset",
     "split_ranges",
+    "check_splits",
     "check_positive_int",
     "check_sigma",
 ]
@@ -125,6 +126,61 @@ def split_ranges(num_sequences: int, fractions: Mapping[str, float]) -> dict[str
     return out
 
 
+def check_splits(splits: object, num_sequences: int, where: str = "dataset") -> None:
+    """Raises :class:`DatasetError` unless ``splits`` (``meta['splits']``) is sound for ``N``.
+
+    ``None`` (no splits) passes; otherwise a dict ``{name: [start, stop]}`` of integer ranges with
+    ``0 <= start < stop <= num_sequences`` (no empty split) that do not overlap. Overlapping
+    train and validation ranges would validate on training data silently; an empty one divides
+    by zero later. ``where`` (the file) starts every message.
+    """
+    if splits is None:
+        return
+    fix = (
+        "recompute them with manifold_nets.data.split_ranges(N, {'train': 0.8, 'val': 0.1, "
+        "'test': 0.1}) (or regenerate the dataset)"
+    )
+    if not isinstance(splits, Mapping):
+        raise DatasetError(
+            f"{where}: meta['splits'] must be a dict {{name: [start, stop]}}, got "
+            f"{type(splits).__name__}; {fix}."
+        )
+    seen: list[tuple[int, int, str]] = []
+    for name, rng in splits.items():
+        if not isinstance(name, str) or not name:
+            raise DatasetError(
+                f"{where}: split names must be non-empty strings, got {name!r}; {fix}."
+            )
+        ok = (
+            isinstance(rng, (list, tuple))
+            and len(rng) == 2
+            and all(
+                isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_))
+                for v in rng
+            )
+        )
+        if not ok:
+            raise DatasetError(
+                f"{where}: split {name!r} is {rng!r}, not a [start, stop] pair of integers; "
+                f"{fix}."
+            )
+        start, stop = int(rng[0]), int(rng[1])
+        if not 0 <= start < stop <= num_sequences:
+            what = "is empty" if 0 <= start and start >= stop else "is out of range"
+            raise DatasetError(
+                f"{where}: split {name!r} = [{start}, {stop}] {what}; a split needs "
+                f"0 <= start < stop <= {num_sequences} (the number of sequences); {fix}."
+            )
+        for s0, s1, other in seen:
+            if start < s1 and s0 < stop:
+                raise DatasetError(
+                    f"{where}: split {name!r} = [{start}, {stop}] overlaps split {other!r} = "
+                    f"[{s0}, {s1}]: the same sequences would be in both (e.g. trained on and "
+                    f"validated on); {fix}."
+                )
+        seen.append((start, stop, name))
+
+
 # ---------------------------------------------------------------------- the dataset
 
 
@@ -190,6 +246,7 @@ class TrajectoryDataset(torch.utils.data.Dataset):
 
     def split(self, name: str) -> TrajectoryDataset:
         """The split ``name`` (``train``, ``val``, ``test``, ...) recorded in ``meta['splits']``."""
+        check_splits(self.meta.get("splits"), len(self))
         ranges = self.meta.get("splits") or {}
         if name not in ranges:
             raise KeyError(f"no split {name!r} in this dataset; its splits: {sorted(ranges)}.")
@@ -323,6 +380,7 @@ def save_dataset(ds: TrajectoryDataset, path: str | os.PathLike) -> None:
     if not isinstance(ds, TrajectoryDataset):
         raise TypeError(f"save_dataset expects a TrajectoryDataset, got {type(ds).__name__}.")
     ds.validate(where=str(path))
+    check_splits(ds.meta.get("splits"), len(ds), where=str(path))
     try:
         meta = json.dumps(ds.meta, allow_nan=False)  # insertion order: the splits keep theirs
     except (TypeError, ValueError) as err:
@@ -334,6 +392,128 @@ def save_dataset(ds: TrajectoryDataset, path: str | os.PathLike) -> None:
     arrays["format_version"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
     arrays["meta"] = np.asarray(meta)
     _write_npz(Path(path), arrays)
+
+
+_ZIP_MAGIC = (b"PK\x03\x04", b"PK\x05\x06")  # a local file header, or an empty archive
+_DEFLATE_MAX_RATIO = 1032  # deflate never expands data more than ~1032-fold
+_REGENERATE = "delete it and regenerate it (mn-generate, or rerun with dataset.regenerate=true)"
+
+
+def _member_header(path: Path, zf: zipfile.ZipFile, name: str, disk_size: int):
+    """The ``.npy`` header ``(shape, fortran_order, dtype)`` of member ``name``, checked against
+    the zip directory before any data is read: no array can claim more bytes than it holds."""
+    info = zf.getinfo(f"{name}.npy")
+    if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+        raise DatasetError(
+            f"{path}: member {name}.npy uses zip compression method {info.compress_type}; a "
+            f"dataset is a plain (stored or deflated) .npz; {_REGENERATE}."
+        )
+    limit = info.compress_size * (1 if info.compress_type == zipfile.ZIP_STORED
+                                  else _DEFLATE_MAX_RATIO)
+    if info.compress_size > disk_size or info.file_size > limit:
+        raise DatasetError(
+            f"{path}: the zip directory claims {info.file_size} bytes for {name}.npy, more than "
+            f"the {disk_size}-byte file can hold (a corrupt or forged file); {_REGENERATE}."
+        )
+    with zf.open(info) as member:
+        try:
+            version = np.lib.format.read_magic(member)
+            if version == (1, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_1_0(member)
+            elif version == (2, 0):
+                shape, fortran, dtype = np.lib.format.read_array_header_2_0(member)
+            else:
+                raise ValueError(f"unsupported .npy format version {version}")
+        except (ValueError, TypeError, SyntaxError, EOFError) as err:
+            raise DatasetError(
+                f"{path}: member {name}.npy has no valid .npy header ({err}); {_REGENERATE}."
+            ) from None
+        header_bytes = member.tell()
+    if dtype.hasobject:
+        raise DatasetError(
+            f"{path}: {name} holds Python objects (dtype {dtype}), which would need pickle; a "
+            f"dataset holds only numbers and one string; {_REGENERATE}."
+        )
+    if any(int(d) < 0 for d in shape):
+        raise DatasetError(
+            f"{path}: {name} claims the negative shape {tuple(shape)}; {_REGENERATE}."
+        )
+    nbytes = math.prod(int(d) for d in shape) * dtype.itemsize  # Python ints: no overflow
+    available = info.file_size - header_bytes
+    if nbytes > available:
+        raise DatasetError(
+            f"{path}: {name} claims shape {tuple(shape)} of {dtype} ({nbytes} bytes), but its "
+            f"member holds only {max(available, 0)} bytes (a truncated or forged file); "
+            f"{_REGENERATE}."
+        )
+    return shape, fortran, dtype
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of the ``.npz`` at ``path``, each read only after its header and size check.
+
+    Every malformed file (empty, a bare ``.npy``, not a zip, a header claiming more bytes than
+    the file holds, a bad ``format_version``) is a :class:`DatasetError` naming ``path``.
+    """
+    disk_size = path.stat().st_size
+    if disk_size == 0:
+        raise DatasetError(
+            f"{path} is empty (0 bytes): an interrupted copy or download; {_REGENERATE}."
+        )
+    with open(path, "rb") as f:
+        magic = f.read(6)
+    if magic == b"\x93NUMPY":
+        raise DatasetError(
+            f"{path} is a single .npy array, not a dataset (.npz archive of states, "
+            f"measurements, inputs, format_version and meta); write datasets with "
+            f"manifold_nets.data.save_dataset, or {_REGENERATE}."
+        )
+    if magic[:4] not in _ZIP_MAGIC:
+        raise DatasetError(
+            f"{path} is not a readable dataset file (not a zip/.npz archive); {_REGENERATE}."
+        )
+    contents: dict[str, np.ndarray] = {}
+    try:
+        with zipfile.ZipFile(path) as zf:
+            names = {n[: -len(".npy")] for n in zf.namelist() if n.endswith(".npy")}
+            if "format_version" not in names:
+                raise DatasetError(
+                    f"{path} has no format_version: not a manifold_nets dataset; {_REGENERATE}."
+                )
+            # the version first: a file of another version may hold anything else
+            order = ["format_version", *(n for n in (*_ARRAYS, "meta") if n in names)]
+            for name in order:
+                shape, _, dtype = _member_header(path, zf, name, disk_size)
+                if name == "format_version":
+                    if shape != () or dtype.kind not in "iu":
+                        raise DatasetError(
+                            f"{path} has format_version of dtype {dtype} and shape "
+                            f"{tuple(shape)}; it must be the integer scalar {FORMAT_VERSION} "
+                            f"(this file was not written by save_dataset); {_REGENERATE}."
+                        )
+                elif name in _ARRAYS and dtype != np.float64:
+                    raise DatasetError(
+                        f"{path}: {name} has dtype {dtype}, expected float64; {_REGENERATE}."
+                    )
+                elif name == "meta" and (shape != () or dtype.kind != "U"):
+                    raise DatasetError(
+                        f"{path}: meta must be one JSON string, got dtype {dtype} and shape "
+                        f"{tuple(shape)}; {_REGENERATE}."
+                    )
+                with zf.open(f"{name}.npy") as member:
+                    contents[name] = np.lib.format.read_array(member, allow_pickle=False)
+                if name == "format_version" and int(contents[name]) != FORMAT_VERSION:
+                    raise DatasetError(
+                        f"{path} has format version {contents[name].tolist()}, this code reads "
+                        f"version {FORMAT_VERSION}; delete the file and regenerate it."
+                    )
+    except (ValueError, OSError, EOFError, zipfile.BadZipFile, zipfile.LargeZipFile) as err:
+        if isinstance(err, DatasetError):
+            raise
+        raise DatasetError(
+            f"{path} is not a readable dataset file ({err}); {_REGENERATE}."
+        ) from None
+    return contents
 
 
 def load_dataset(
@@ -348,26 +528,16 @@ def load_dataset(
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no dataset file at {path}; generate it first.")
-    try:
-        with np.load(path, allow_pickle=False) as npz:
-            contents = {k: npz[k] for k in npz.files}
-    except (ValueError, OSError, zipfile.BadZipFile) as err:
-        raise DatasetError(f"{path} is not a readable dataset file ({err}); delete it.") from None
+    contents = _read_npz(path)
     missing = [k for k in (*_ARRAYS, "format_version", "meta") if k not in contents]
-    if "format_version" in missing:
-        raise DatasetError(f"{path} has no format_version: not a manifold_nets dataset.")
-    version = contents["format_version"]
-    if version.shape != () or int(version) != FORMAT_VERSION:
-        raise DatasetError(
-            f"{path} has format version {version.tolist()}, this code reads version "
-            f"{FORMAT_VERSION}; delete the file and regenerate it."
-        )
     if missing:
         raise DatasetError(f"{path} lacks the arrays {missing}; delete it and regenerate it.")
     try:
         meta = json.loads(str(contents["meta"]))
     except json.JSONDecodeError as err:
-        raise DatasetError(f"{path}: meta is not valid JSON ({err}).") from None
+        raise DatasetError(
+            f"{path}: meta is not valid JSON ({err}); delete the file and regenerate it."
+        ) from None
     tensors = {}
     for name in _ARRAYS:
         arr = contents[name]
@@ -378,4 +548,5 @@ def load_dataset(
         ds = TrajectoryDataset(**tensors, meta=meta)
     except DatasetError as err:
         raise DatasetError(f"{path}: {err}") from None
+    check_splits(ds.meta.get("splits"), len(ds), where=str(path))
     return ds.validate(group, atol=atol, where=str(path))
