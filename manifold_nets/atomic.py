@@ -3,6 +3,14 @@
 An interrupted run leaves either the old file or the new one, never half of one. Every file the
 library writes (data sets, checkpoints, logs, tables) goes through :func:`atomic_open`.
 
+A process killed mid-write (``kill -9``, out of memory, power loss) cannot remove its temporary
+file. Temporaries are therefore named ``.<name>.<host>.<pid>.<random>.tmp`` beside ``<name>``,
+and the next :func:`atomic_open` of the same ``<name>`` removes the leftovers of that target:
+those of a process of this host that no longer runs, and those that have not been modified for
+:data:`STALE_AGE_S` (one hour) whose writer cannot be checked (another host sharing the folder,
+Windows, or a temporary from a version without the pid in its name). A temporary of a live
+writer of this host is never removed.
+
 :func:`file_lock` serialises work between processes on one machine (or on a shared file system
 with working ``flock``): the dataset cache takes it so that parallel jobs of a sweep that need
 the same file make it once.
@@ -13,7 +21,10 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import tempfile
+import re
+import secrets
+import socket
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import IO
@@ -23,9 +34,91 @@ try:  # POSIX
 except ImportError:  # Windows: no flock
     fcntl = None
 
-__all__ = ["atomic_open", "file_lock", "write_text_atomic"]
+__all__ = [
+    "STALE_AGE_S",
+    "atomic_open",
+    "file_lock",
+    "remove_stale_temporaries",
+    "write_text_atomic",
+]
 
 log = logging.getLogger(__name__)
+
+
+#: Seconds after its last modification that a temporary whose writer cannot be checked (another
+#: host, Windows, an old name without pid) counts as abandoned. Generous: writes take seconds.
+STALE_AGE_S = 3600.0
+
+_HOST = re.sub(r"[^A-Za-z0-9-]", "-", socket.gethostname())[:64] or "host"
+
+
+def _create_temporary(path: Path) -> tuple[int, str]:
+    """Creates ``.<name>.<host>.<pid>.<random>.tmp`` beside ``path`` exclusively; ``(fd, name)``."""
+    for _ in range(100):
+        tmp = path.parent / f".{path.name}.{_HOST}.{os.getpid()}.{secrets.token_hex(6)}.tmp"
+        try:
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_EXCL | getattr(os, "O_BINARY", 0),
+                         0o600)
+        except FileExistsError:
+            continue
+        return fd, str(tmp)
+    raise FileExistsError(f"could not create a temporary file beside {path}")
+
+
+def _pid_alive(pid: int) -> bool:
+    """Whether process ``pid`` exists on this host (POSIX ``kill(pid, 0)``; EPERM means yes)."""
+    if pid <= 0:
+        return True  # not a real writer's pid: never judge it dead
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:  # PermissionError: it exists, under another user
+        return True
+    return True
+
+
+def remove_stale_temporaries(
+    path: str | os.PathLike, max_age_s: float = STALE_AGE_S
+) -> list[Path]:
+    """Removes the temporaries that killed writers of ``path`` left beside it; returns them.
+
+    A temporary ``.<name>.<host>.<pid>.<random>.tmp`` of this host goes when process ``pid`` no
+    longer exists; one of another host (or on Windows, where ``os.kill(pid, 0)`` would signal
+    the process) goes when unmodified for ``max_age_s``, as does an old-style
+    ``.<name>.<8 characters>.tmp`` (from before the pid was in the name). A live writer's
+    temporary stays. Failures to list or remove are logged and ignored: cleaning up must never
+    break a write.
+    """
+    path = Path(path)
+    name = re.escape(path.name)
+    new_style = re.compile(rf"\.{name}\.([A-Za-z0-9-]+)\.(\d+)\.[0-9a-f]{{12}}\.tmp")
+    old_style = re.compile(rf"\.{name}\.[a-z0-9_]{{8}}\.tmp")
+    removed: list[Path] = []
+    try:
+        entries = list(os.scandir(path.parent))
+    except OSError as err:
+        log.debug("cannot list %s for stale temporaries: %s", path.parent, err)
+        return removed
+    now = time.time()
+    for entry in entries:
+        m = new_style.fullmatch(entry.name)
+        if m is None and old_style.fullmatch(entry.name) is None:
+            continue
+        try:
+            if not entry.is_file(follow_symlinks=False):
+                continue
+            if m is not None and m.group(1) == _HOST and os.name == "posix":
+                stale = not _pid_alive(int(m.group(2)))
+            else:
+                stale = now - entry.stat(follow_symlinks=False).st_mtime > max_age_s
+            if stale:
+                os.unlink(entry.path)
+                removed.append(Path(entry.path))
+                log.info("removed %s, left by an interrupted write of %s", entry.path, path)
+        except OSError as err:  # gone already (another cleaner), or not ours to remove
+            log.debug("could not remove stale temporary %s: %s", entry.path, err)
+    return removed
 
 
 @contextlib.contextmanager
@@ -33,13 +126,15 @@ def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator[
     """``with atomic_open(path, "wb") as f: ...`` writes ``path`` atomically.
 
     The folder is created if needed; on an exception the temporary file is removed and ``path``
-    is left as it was. ``mode`` is ``"w"`` or ``"wb"``; ``kwargs`` go to ``open`` (e.g. ``newline``).
+    is left as it was. Temporaries that killed writers of ``path`` left behind are removed first
+    (:func:`remove_stale_temporaries`). ``mode`` is ``"w"`` or ``"wb"``; ``kwargs`` go to ``open`` (e.g. ``newline``).
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_open writes whole files: mode must be 'w' or 'wb', got {mode!r}.")
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    remove_stale_temporaries(path)
+    fd, tmp = _create_temporary(path)
     try:
         with os.fdopen(fd, mode, **kwargs) as f:
             yield f
