@@ -16,7 +16,9 @@ Derived once here, overridable for speed: ``rplus``, ``rminus``, ``between``, ``
 ``distance``, ``random``, ``check_member``, ``from_embedding``.
 
 Input validation for authors of a group or a system: ``check_element``, ``check_tangent`` and
-``check_shape`` raise ``TypeError`` / ``ValueError`` naming the expected shape and dtype.
+``check_shape`` raise ``TypeError`` / ``ValueError`` naming the expected shape and dtype (float32
+or float64, the only supported dtypes); ``check_pair`` also asks two elements for one dtype and
+broadcastable batch shapes.
 
 The factors view: every group is a product of named factors. A :class:`~groups.Product` has its
 own; any other group is its single factor named ``"x"``. ``factors``, ``factor_names``,
@@ -46,6 +48,10 @@ BatchShape = Sequence[int] | torch.Size
 
 class GroupMembershipError(ValueError):
     """A tensor that was required to be a group element is not one (or holds NaN/Inf)."""
+
+
+#: The dtypes the groups support: float16/bfloat16 have no tolerances, thresholds or tests.
+_DTYPES = (torch.float32, torch.float64)
 
 
 def _default_atol(dtype: torch.dtype) -> float:
@@ -126,6 +132,7 @@ class LieGroup(abc.ABC):
 
     def between(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """``x^-1 · y``, the relative element from ``x`` to ``y``."""
+        self.check_pair(x, y, "between")
         return self.compose(self.inverse(x), y)
 
     def distance(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -170,24 +177,41 @@ class LieGroup(abc.ABC):
     def check_member(self, x: torch.Tensor, atol: float | None = None) -> torch.Tensor:
         """Raises :class:`GroupMembershipError` unless every element of ``x`` is on the group.
 
-        ``atol`` defaults to 1e-4 for float32 and 1e-9 for float64. Returns ``x`` unchanged.
+        ``atol`` defaults to 1e-4 for float32 and 1e-9 for float64; another value must be a
+        finite number >= 0 (else ``ValueError``). Returns ``x`` unchanged.
         """
         self.check_element(x, "check_member")
         if not bool(torch.isfinite(x).all()):
             raise GroupMembershipError(
                 f"{self.name}: the element holds NaN or Inf; a group element must be finite."
             )
-        tol = _default_atol(x.dtype) if atol is None else atol
+        if atol is not None and (
+            isinstance(atol, bool)
+            or not isinstance(atol, (int, float))
+            or not math.isfinite(atol)
+            or atol < 0
+        ):
+            raise ValueError(
+                f"{self.name}.check_member: atol must be a finite number >= 0, got {atol!r}; "
+                f"pass e.g. atol=1e-5, or None for the default (1e-4 in float32, 1e-9 in "
+                f"float64)."
+            )
+        tol = _default_atol(x.dtype) if atol is None else float(atol)
         err = self.membership_error(x)
         worst = float(err.max()) if err.numel() else 0.0
         if not worst <= tol:
             raise GroupMembershipError(
                 f"{self.name}: {int((err > tol).sum())} of {err.numel()} element(s) are not on the "
-                f"group (largest membership error {worst:.3g} > atol {tol:.3g}). Pass group "
+                f"group (largest membership error {worst:.3g} > atol {tol:.3g})."
+                f"{self._membership_detail(x, err)} Pass group "
                 f"elements (for rotations: orthonormal with det +1), or raise atol if the "
                 f"data were rounded."
             )
         return x
+
+    def _membership_detail(self, x: torch.Tensor, err: torch.Tensor) -> str:
+        """Extra words for :meth:`check_member`'s message about the worst element (" ..." or "")."""
+        return ""
 
     def from_embedding(self, z: torch.Tensor, atol: float | None = None) -> torch.Tensor:
         """The inverse of ``embed``, checked: raises :class:`GroupMembershipError` off the group."""
@@ -275,17 +299,20 @@ class LieGroup(abc.ABC):
 
         ``where`` names the method being called and ``what`` the argument, for the message, e.g.
         ``check_shape(z, (4,), "unembed", "an embedded element")``. Raises ``TypeError`` for a
-        non-tensor or a non-floating dtype (asking for float32 or float64), ``ValueError`` for a
+        non-tensor or a dtype other than float32 and float64 (integers, float16, bfloat16, complex),
+        ``ValueError`` for a
         wrong trailing shape (naming the expected ``(*batch, ...)`` and the shape received).
         """
         if not isinstance(t, torch.Tensor):
             raise TypeError(
                 f"{self.name}.{where} expects {what} as a torch.Tensor, got {type(t).__name__}."
             )
-        if not (t.is_floating_point()):
+        if t.dtype not in _DTYPES:
+            kind = "floating-point tensor" if not t.is_floating_point() else "tensor"
             raise TypeError(
-                f"{self.name}.{where} expects a floating-point tensor (float32 or float64), got "
-                f"{t.dtype}; convert it first, e.g. with .double()."
+                f"{self.name}.{where} expects a {kind} of dtype float32 or float64 (the only "
+                f"supported dtypes), got {t.dtype}; convert it first, e.g. with .float() or "
+                f".double()."
             )
         n = len(trailing)
         if t.dim() < n or tuple(t.shape[t.dim() - n :]) != trailing:
@@ -311,6 +338,27 @@ class LieGroup(abc.ABC):
         only, cheaply, so every operation can call it; :meth:`check_member` is the membership test.
         """
         self.check_shape(x, tuple(self.element_shape), where, "a group element")
+
+    def check_pair(self, x: torch.Tensor, y: torch.Tensor, where: str) -> None:
+        """Raises unless ``x`` and ``y`` are elements (:meth:`check_element`) of one dtype whose
+        batch shapes broadcast: ``TypeError`` naming both dtypes, ``ValueError`` naming both
+        shapes. For methods of two elements (``compose``, ``between``); static checks only."""
+        self.check_element(x, where)
+        self.check_element(y, where)
+        if x.dtype != y.dtype:
+            raise TypeError(
+                f"{self.name}.{where} expects x and y of one dtype, got x {x.dtype} and y "
+                f"{y.dtype}; convert one first, e.g. y.to(x.dtype)."
+            )
+        bx, by = self.batch_shape(x), self.batch_shape(y)
+        try:
+            torch.broadcast_shapes(bx, by)
+        except RuntimeError:
+            raise ValueError(
+                f"{self.name}.{where}: the batch shapes of x {tuple(bx)} and y {tuple(by)} do not "
+                f"broadcast (x has shape {tuple(x.shape)}, y {tuple(y.shape)}); batch dimensions "
+                f"must be equal or 1, as in torch broadcasting."
+            ) from None
 
 
 class MatrixLieGroup(LieGroup):
@@ -341,8 +389,7 @@ class MatrixLieGroup(LieGroup):
         return eye.expand(*batch_shape, self.matrix_dim, self.matrix_dim).clone()
 
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        self.check_element(x, "compose")
-        self.check_element(y, "compose")
+        self.check_pair(x, y, "compose")
         return x @ y
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:

@@ -33,8 +33,7 @@ class Euclidean(LieGroup):
         return torch.zeros(*batch_shape, self.n, dtype=dtype, device=device)
 
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        self.check_element(x, "compose")
-        self.check_element(y, "compose")
+        self.check_pair(x, y, "compose")
         return x + y
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:

@@ -122,6 +122,7 @@ class Product(LieGroup):
         return self.join([f.identity(batch_shape, dtype, device) for f in self.factors])
 
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        self.check_pair(x, y, "compose")
         return self.join([f.compose(a, b) for f, a, b in zip(self.factors, self.split(x), self.split(y))])
 
     def inverse(self, x: torch.Tensor) -> torch.Tensor:

@@ -10,6 +10,8 @@ the largest pivot (Shepperd's method) and ``atan2``, so it is accurate up to and
 
 from __future__ import annotations
 
+import math
+
 import torch
 
 from . import numerics as nx
@@ -135,6 +137,11 @@ class SO3(MatrixLieGroup):
     embedding_is_flat = True
     angle_slices = (slice(0, 3),)
 
+    @staticmethod
+    def exp_max_norm(dtype: torch.dtype) -> float:
+        """The bound on ``|v|`` below which :meth:`exp` is finite: ``sqrt(finfo(dtype).max)``."""
+        return math.sqrt(torch.finfo(dtype).max)
+
     def hat(self, v: torch.Tensor) -> torch.Tensor:
         self.check_tangent(v, "hat")
         return skew(v)
@@ -154,6 +161,12 @@ class SO3(MatrixLieGroup):
         ``cos t``: with a fixed step size that rounding error is the same at every step, and
         float32 chains ``R <- R exp(v)`` (1000 steps of norm 0.1) ended ten times further off
         the group through it (``benchmarks/bench_so3.py``).
+
+        Domain (no value checks here: ``exp`` runs in the observer's exported rollout): NaN in
+        any entry of ``v`` gives NaN in its matrix (NaN in, NaN out, never an error), and so
+        does an angle whose square overflows, ``|v| >= sqrt(finfo(dtype).max)`` (about 1.8e19
+        in float32, 1.3e154 in float64; ``SO3.exp_max_norm(dtype)``). Below that bound the
+        result is finite. Check data from outside with ``torch.isfinite`` or :meth:`check_member`.
 
         Layout, for speed on the CPU: the batch is transposed into rows ``x, y, z`` of length
         ``N`` once, the nine terms are computed row by row, and ``R`` is assembled by one
@@ -198,6 +211,12 @@ class SO3(MatrixLieGroup):
         and the ratio do not see the scale), and the sign picks the one with ``w >= 0``.
         The sign is taken from ``1 / w`` (the sign bit of ``w``, as ``copysign`` would), so the
         logarithm exports with ``torch.export`` and to ONNX.
+
+        ``x`` must be a rotation. The logarithm of anything else (a reflection, ``det = -1``; a
+        non-orthogonal matrix) is undefined: it returns some finite vector without an error (no
+        value checks in this hot path; a reflection such as ``diag(1, 1, -1)`` gives 0). Data
+        from outside goes through :meth:`from_embedding` or :meth:`check_member`, which raise
+        :class:`~groups.GroupMembershipError` for such input and name the determinant.
         """
         self.check_element(x, "log")
         batch = x.shape[:-2]
@@ -225,6 +244,12 @@ class SO3(MatrixLieGroup):
         eye = torch.eye(3, dtype=x.dtype, device=x.device)
         orth = torch.linalg.matrix_norm(x @ x.transpose(-1, -2) - eye)
         return torch.maximum(orth, (torch.linalg.det(x) - 1).abs())
+
+    def _membership_detail(self, x: torch.Tensor, err: torch.Tensor) -> str:
+        worst = x.reshape(-1, 3, 3)[int(err.reshape(-1).argmax())]
+        det = float(torch.linalg.det(worst))
+        what = " (a reflection: log and exp are undefined for it)" if det < 0 else ""
+        return f" The worst has det {det:.3g}{what}."
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """``Ad_R = R`` for rotation vectors."""

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 import re
+from pathlib import Path
 
 import pytest
 import torch
@@ -165,3 +166,97 @@ def test_check_group_misuse() -> None:
         check_group("SO3")  # type: ignore[arg-type]
     with pytest.raises(ValueError, match="tolerances"):
         check_group(SO3(), dtypes=(torch.float16,), checks=["exp_log"])
+
+
+# ------------------------------------------------------------------ issue 13, item 8
+
+
+@pytest.mark.parametrize("group", SHIPPED, ids=ids)
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16], ids=["float16", "bfloat16"])
+def test_half_precision_is_refused_naming_the_supported_dtypes(group: LieGroup, dtype) -> None:
+    """Message: ``SO3.exp expects a tensor of dtype float32 or float64 (the only supported
+    dtypes), got torch.float16; convert it first, e.g. with .float() or .double().``"""
+    v = torch.zeros(2, group.tangent_dim, dtype=dtype)
+    x = group.identity((2,)).to(dtype)
+    msg = rf"\.\w+ expects a tensor of dtype float32 or float64 .*got {dtype}"
+    for call in (
+        lambda: group.exp(v),
+        lambda: group.log(x),
+        lambda: group.compose(x, x),
+        lambda: group.check_member(x),
+    ):
+        with pytest.raises(TypeError, match=msg):
+            call()
+
+
+@pytest.mark.parametrize("group", SHIPPED, ids=ids)
+def test_compose_and_between_name_both_batch_shapes(group: LieGroup) -> None:
+    """Message: ``SO3.compose: the batch shapes of x (2,) and y (3,) do not broadcast (x has
+    shape (2, 3, 3), y (3, 3, 3)); batch dimensions must be equal or 1, ...``"""
+    x, y = group.identity((2,)), group.identity((3,))
+    for where, call in (("compose", group.compose), ("between", group.between)):
+        with pytest.raises(
+            ValueError,
+            match=rf"\.{where}: the batch shapes of x \(2,\) and y \(3,\) do not broadcast",
+        ):
+            call(x, y)
+    assert group.compose(group.identity((2, 1)), y).shape[:2] == (2, 3)  # broadcasting still works
+
+
+@pytest.mark.parametrize("group", SHIPPED, ids=ids)
+def test_compose_and_between_name_both_dtypes(group: LieGroup) -> None:
+    """Message: ``SO3.compose expects x and y of one dtype, got x torch.float32 and y
+    torch.float64; convert one first, e.g. y.to(x.dtype).`` (Euclidean used to promote.)"""
+    x, y = group.identity((2,)), group.identity((2,), dtype=torch.float64)
+    for where, call in (("compose", group.compose), ("between", group.between)):
+        with pytest.raises(
+            TypeError,
+            match=rf"\.{where} expects x and y of one dtype, got x torch.float32 and y torch.float64",
+        ):
+            call(x, y)
+
+
+@pytest.mark.parametrize("atol", [-1, -1e-9, math.nan, math.inf, "1e-3", True])
+def test_check_member_validates_atol(atol) -> None:
+    """Message: ``SO3.check_member: atol must be a finite number >= 0, got -1; pass e.g.
+    atol=1e-5, or None for the default (1e-4 in float32, 1e-9 in float64).``"""
+    for call in (
+        lambda: SO3().check_member(torch.eye(3), atol=atol),
+        lambda: SO3().from_embedding(torch.eye(3).flatten(), atol=atol),
+    ):
+        with pytest.raises(ValueError, match=r"atol must be a finite number >= 0, got "):
+            call()
+    SO3().check_member(torch.eye(3), atol=0)  # 0 is a valid (strict) tolerance
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["float32", "float64"])
+def test_so3_exp_domain_is_documented_and_kept(dtype: torch.dtype) -> None:
+    """NaN in, NaN out; finite below the documented bound sqrt(finfo.max), NaN at and above it.
+
+    The docstring says: ``NaN in any entry of v gives NaN in its matrix (NaN in, NaN out, never
+    an error), and so does an angle whose square overflows, |v| >= sqrt(finfo(dtype).max)``."""
+    G = SO3()
+    doc = " ".join(G.exp.__doc__.split())
+    assert "NaN in, NaN out" in doc and "sqrt(finfo(dtype).max)" in doc
+    bound = G.exp_max_norm(dtype)
+    assert bound == pytest.approx(1.8e19 if dtype == torch.float32 else 1.3e154, rel=0.05)
+    assert "SO3.exp" in (Path(__file__).parents[1] / "docs" / "groups.md").read_text()
+    axis = torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.6, 0.8]], dtype=dtype)
+    inside = G.exp(0.999 * bound * axis)
+    assert bool(torch.isfinite(inside).all())
+    G.check_member(inside, atol=1e-4)
+    assert bool(torch.isnan(G.exp(1.001 * bound * axis)).all())
+    v = torch.tensor([[math.nan, 0.0, 0.0], [0.1, 0.2, 0.3]], dtype=dtype)
+    R = G.exp(v)
+    assert bool(torch.isnan(R[0]).all()) and bool(torch.isfinite(R[1]).all())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["float32", "float64"])
+def test_log_of_a_reflection_is_documented_and_refused_at_the_door(dtype: torch.dtype) -> None:
+    """Message: ``SO3: 1 of 1 element(s) are not on the group (largest membership error 2 >
+    atol 0.0001). The worst has det -1 (a reflection: log and exp are undefined for it). ...``"""
+    reflection = torch.diag(torch.tensor([1.0, 1.0, -1.0], dtype=dtype))
+    doc = " ".join(SO3.log.__doc__.split())
+    assert "undefined" in doc and "from_embedding" in doc and "check_member" in doc
+    with pytest.raises(GroupMembershipError, match=r"The worst has det -1 \(a reflection"):
+        SO3().from_embedding(reflection.flatten())
