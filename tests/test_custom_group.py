@@ -22,7 +22,7 @@ import torch
 
 from groups import SE2, SE3, SO3, Euclidean, LieGroup, MatrixLieGroup, Product
 from groups.so3 import unskew
-from groups.testing import check_group
+from groups.testing import check_group, check_membership
 
 TUTORIAL = Path(__file__).resolve().parents[1] / "docs" / "examples" / "custom_group_so2_complex.py"
 
@@ -249,3 +249,30 @@ def test_wrong_compose_fails_the_one_line_call() -> None:
     failed = set(re.findall(r"property '(\w+)' fails", msg))
     assert {"identity", "inverse", "associativity"} <= failed
     assert "exp_log" not in failed  # exp and log are right; only the product is wrong
+
+
+class NaNAtZeroSO3(SO3):
+    """The textbook ``sin(t) / t`` without a series: ``exp`` returns NaN at angle 0 (0 / 0)."""
+
+    def exp(self, v):
+        t2 = (v * v).sum(-1)[..., None, None]
+        t = t2.sqrt()
+        k = self.hat(v)
+        return torch.eye(3, dtype=v.dtype) + torch.sin(t) / t * k + (1 - torch.cos(t)) / t2 * (k @ k)
+
+
+def test_nan_from_exp_is_reported_as_nan_not_as_in_place() -> None:
+    """Message: ``property 'membership' fails for NaNAtZeroSO3() in torch.float32 on the
+    adversarial grid (batch shape (72,)): exp(v) returned NaN or Inf at batch index (15,) (...)
+    v[(15,)] = [0, -0, 0]``; it used to say ``identity(batch_shape) modified its input x in
+    place`` (torch.equal is False for tensors holding NaN)."""
+    with pytest.raises(AssertionError) as info:
+        check_group(NaNAtZeroSO3(), checks=["membership"], max_examples=3)
+    msg = str(info.value)
+    assert "in place" not in msg, msg
+    assert re.search(r"exp\(v\) returned NaN or Inf at batch index \(\d+,\)", msg), msg
+    assert re.search(r"v\[\(\d+,\)\] = \[-?0, -?0, -?0\]", msg), msg
+    # drawn by hypothesis (no grid): the angle-0 examples are caught the same way
+    with pytest.raises(AssertionError, match=r"exp\(v\) returned NaN or Inf"):
+        check_membership(NaNAtZeroSO3(), batch_shape=(4,), max_examples=20, grid=False)
+

@@ -251,6 +251,31 @@ class Case:
 
     # -- comparisons
 
+    def finite(
+        self,
+        what: str,
+        t: torch.Tensor,
+        trailing: int,
+        *,
+        inputs: dict[str, torch.Tensor] | None = None,
+    ) -> None:
+        """Requires every entry of ``t`` to be finite; else fails with ``what``, the first batch
+        index holding NaN or Inf (``trailing``: the number of non-batch dimensions of ``t``)
+        and the inputs there."""
+        bad = ~torch.isfinite(t.detach())
+        if trailing:
+            bad = bad.flatten(-trailing).any(-1)
+        if not bool(bad.any()):
+            return
+        batch = bad.shape
+        i = int(bad.reshape(-1).nonzero()[0])
+        index = tuple(int(j) for j in torch.unravel_index(torch.tensor(i), batch)) if batch else ()
+        n = int(bad.sum())
+        lines = [f"{what} at batch index {index} ({n} of {bad.numel()} element(s))"]
+        for name, x in (inputs or {}).items():
+            lines.append(f"    {name}[{index}] = {format_tensor(_at(x, batch, index))}")
+        self.fail("\n".join(lines))
+
     def within(
         self,
         what: str,

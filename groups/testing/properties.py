@@ -59,13 +59,17 @@ def membership(c: Case, data) -> None:
     saved = {name: t.clone() for name, t in inputs.items()}
     el = tuple(G.element_shape)
     # name -> (operation, trailing shape of its output, is the output a group element?)
-    ops: dict[str, tuple[Callable[[], torch.Tensor], tuple[int, ...], bool]] = {
+    # The first three make elements from nothing but their arguments; the drawn x and y are made
+    # by them (strategies.elements), so they are checked first and a NaN in x is blamed on them.
+    makers: dict[str, tuple[Callable[[], torch.Tensor], tuple[int, ...], bool]] = {
         "identity(batch_shape)": (lambda: G.identity(bs, dtype=dt), el, True),
+        "exp(v)": (lambda: G.exp(v), el, True),
+        "random(batch_shape)": (lambda: G.random(bs, generator=gen, dtype=dt), el, True),
+    }
+    ops: dict[str, tuple[Callable[[], torch.Tensor], tuple[int, ...], bool]] = {
         "compose(x, y)": (lambda: G.compose(x, y), el, True),
         "inverse(x)": (lambda: G.inverse(x), el, True),
-        "exp(v)": (lambda: G.exp(v), el, True),
         "rplus(x, v)": (lambda: G.rplus(x, v), el, True),
-        "random(batch_shape)": (lambda: G.random(bs, generator=gen, dtype=dt), el, True),
         "log(x)": (lambda: G.log(x), (k,), False),
         "rminus(y, x)": (lambda: G.rminus(y, x), (k,), False),
         "between(x, y)": (lambda: G.between(x, y), el, True),
@@ -73,16 +77,35 @@ def membership(c: Case, data) -> None:
         "adjoint(x)": (lambda: G.adjoint(x), (k, k), False),
         "distance(x, y)": (lambda: G.distance(x, y), (), False),
     }
-    for name, (op, trailing, is_element) in ops.items():
-        out = op()
-        for arg, before in saved.items():
-            if not torch.equal(before, inputs[arg]):
-                c.fail(f"{name} modified its input {arg} in place")
-        c.shape(name, out, trailing)
-        if is_element:
-            err = G.membership_error(out)
-            c.shape(f"membership_error({name})", err, ())
-            c.within(f"membership_error({name})", err, c.tol.member, inputs=inputs)
+
+    def run(table, shown: dict[str, torch.Tensor]) -> None:
+        for name, (op, trailing, is_element) in table.items():
+            out = op()
+            for arg, before in saved.items():
+                if not _unchanged(before, inputs[arg]):
+                    c.fail(f"{name} modified its input {arg} in place")
+            c.shape(name, out, trailing)
+            c.finite(f"{name} returned NaN or Inf", out, len(trailing), inputs=shown)
+            if is_element:
+                err = G.membership_error(out)
+                c.shape(f"membership_error({name})", err, ())
+                c.within(f"membership_error({name})", err, c.tol.member, inputs=inputs)
+
+    run(makers, {"v": v})
+    for arg in ("x", "y"):
+        c.finite(
+            f"the drawn element {arg} holds NaN or Inf (it was made by the group's exp or random)",
+            inputs[arg], len(el), inputs={arg: inputs[arg]},
+        )  # fmt: skip
+    run(ops, inputs)
+
+
+def _unchanged(before: torch.Tensor, after: torch.Tensor) -> bool:
+    """``torch.equal`` with NaN equal to NaN (``torch.equal`` is False for a tensor holding NaN,
+    which would blame a NaN on an in-place modification)."""
+    return before.shape == after.shape and bool(
+        torch.isclose(before, after, rtol=0.0, atol=0.0, equal_nan=True).all()
+    )
 
 
 def identity(c: Case, data) -> None:
