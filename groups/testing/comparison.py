@@ -267,11 +267,18 @@ class Case:
             bad = bad.flatten(-trailing).any(-1)
         if not bool(bad.any()):
             return
-        batch = bad.shape
         i = int(bad.reshape(-1).nonzero()[0])
-        index = tuple(int(j) for j in torch.unravel_index(torch.tensor(i), batch)) if batch else ()
         n = int(bad.sum())
-        lines = [f"{what} at batch index {index} ({n} of {bad.numel()} element(s))"]
+        self._fail_at(
+            lambda index: f"{what} at batch index {index} ({n} of {bad.numel()} element(s))",
+            bad.shape, i, inputs,
+        )
+
+    def _fail_at(self, headline, batch: torch.Size, i: int, inputs) -> None:
+        """Fails with ``headline(index)`` for the flat position ``i`` in ``batch``, followed by
+        every input's value at that batch index."""
+        index = tuple(int(j) for j in torch.unravel_index(torch.tensor(i), batch)) if batch else ()
+        lines = [headline(index)]
         for name, x in (inputs or {}).items():
             lines.append(f"    {name}[{index}] = {format_tensor(_at(x, batch, index))}")
         self.fail("\n".join(lines))
@@ -302,16 +309,12 @@ class Case:
             self.result.worst_error = worst_err
             self.result.worst_what = what
         if not worst_ratio <= 1.0:
-            index = tuple(int(j) for j in torch.unravel_index(torch.tensor(i), err.shape)) if (
-                err.dim()
-            ) else ()
-            lines = [
-                f"{what}: worst error {worst_err:.3g}{unit} > tolerance "
-                f"{float(tol_t.reshape(-1)[i]):.3g} at batch index {index}"
-            ]
-            for name, t in (inputs or {}).items():
-                lines.append(f"    {name}[{index}] = {format_tensor(_at(t, err.shape, index))}")
-            self.fail("\n".join(lines))
+            tol_i = float(tol_t.reshape(-1)[i])
+            self._fail_at(
+                lambda index: f"{what}: worst error {worst_err:.3g}{unit} > tolerance "
+                f"{tol_i:.3g} at batch index {index}",
+                err.shape, i, inputs,
+            )
 
     def close(
         self,
