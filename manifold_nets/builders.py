@@ -101,6 +101,7 @@ def build_observer(
     model: ModelConfig | Any,
     *,
     import_core: bool = True,
+    dt: float | None = None,
 ) -> ResidualObserver:
     """The observer of a ``model`` config (:class:`~manifold_nets.config.ModelConfig`) for a
     system's ``group`` and sizes; ``model.relax`` takes factors off the group
@@ -109,9 +110,19 @@ def build_observer(
     ``model.core`` is ``gru`` or a :class:`~manifold_nets.cores.RecurrentCore` subclass by dotted
     path; with ``import_core=False`` (a config read from a file,
     :func:`manifold_nets.load_observer`) only one already imported
-    (:data:`manifold_nets.cores.CORES`), never a module to import."""
+    (:data:`manifold_nets.cores.CORES`), never a module to import. ``dt`` (the system's step)
+    scales the kinematic prior ``model.propagate``."""
     group = relax(group, list(model.relax))
-    inputs = ObserverInputs(dict(model.innovation), tuple(model.relative_only))
+    inputs = ObserverInputs(
+        dict(model.innovation),
+        tuple(model.relative_only),
+        rotated={
+            name: [tuple(span) for span in spans]
+            for name, spans in dict(getattr(model, "rotated", None) or {}).items()
+        },
+        propagate=dict(getattr(model, "propagate", None) or {}),
+        dt=dt,
+    )
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)
     core_cls = _core_class(model.core, import_core)
     core = core_cls(

@@ -89,6 +89,14 @@ class ModelConfig:
     #: their absolute estimate and measurement are left out of its input, e.g. ``[p]`` for a
     #: rigid body, which makes the observer invariant to translations (an extension).
     relative_only: list[str] = field(default_factory=list)
+    #: Body-frame 3-vectors in ``(y, u)`` the core also reads rotated to the world frame by an
+    #: SO(3) factor's estimate, ``{factor: [[start, stop], ...]}``, e.g. ``{R: [[0, 3], [3, 6]]}``
+    #: for an accelerometer and a magnetometer (an extension; ``manifold_nets.inputs``).
+    rotated: dict[str, list[list[int]]] = field(default_factory=dict)
+    #: A kinematic prior: ``{factor: [start, stop]}``, the span of ``(y, u)`` holding the
+    #: factor's velocity; before the learned update ``x_f <- x_f · exp(system.dt · u_f)``, e.g.
+    #: ``{R: [6, 9]}`` for a gyroscope (an extension; ``manifold_nets.inputs``).
+    propagate: dict[str, list[int]] = field(default_factory=dict)
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
     state_dtype: str = "float64"
     #: dtype of the network's parameters.

@@ -81,9 +81,7 @@ class OnlineStep(nn.Module):
         hidden, y = tuple(args[: self.num_hidden]), args[self.num_hidden]
         net = obs.net_dtype
         context = y.to(net) if not obs.input_dim else torch.cat((y.to(net), args[-1].to(net)), -1)
-        if obs._keep_context is not None:
-            context = context.index_select(-1, obs._keep_context)
-        x, hidden = obs._step(x, hidden, context, obs._measured(y))
+        x, hidden = obs._step(x, hidden, obs._context(context), obs._measured(y))
         return (x, *hidden)
 
 

@@ -13,6 +13,18 @@ optional extensions (both off by default):
   the core's input, so the core sees them only through their innovation ``p^m - phat`` (each
   needs an innovation span). For the rigid body, whose motion does not depend on where it is,
   the observer is then invariant to translations of the whole trajectory.
+* ``rotated = {"R": [(0, 3), (3, 6)]}``: spans of ``(y, u)`` (the measurement, then the input)
+  holding body-frame 3-vectors (an accelerometer's, a magnetometer's reading) of a rotation
+  factor ``R`` (SO(3): a ``(3, 3)`` element); the core also reads each rotated into the world
+  frame by the estimate, ``Rhat v``. A vector a classical filter compares with a known world
+  direction (gravity, north) is then an input the network can compare linearly, where
+  ``(vec Rhat, v)`` would need a product.
+* ``propagate = {"R": (6, 9)}`` with ``dt``: a kinematic prior. Before the learned update, each
+  named factor moves by the velocity it is driven with, read from that span of ``(y, u)`` (a
+  gyroscope's rate, a body-frame twist): ``x_f <- x_f · exp(dt · u[start:stop])``, exact for
+  group kinematics ``dx/dt = x · (omega)^`` with ``omega`` held over the step. The core then
+  reads that prediction (its embedding, the innovation and rotated vectors there) and its
+  output corrects it: the network learns what the filter adds to integration, not integration.
 
 The object is plain data; :meth:`ObserverInputs.check` validates it against a group and a
 measurement size, :meth:`ObserverInputs.core_input_size` says how wide the core's input is, and
@@ -40,10 +52,18 @@ class ObserverInputs:
             embedding of that factor.
         relative_only: factor names (each with an innovation span) the core reads only through
             their innovation.
+        rotated: ``{factor name: [(start, stop), ...]}``, body-frame 3-vectors in ``(y, u)``
+            the core also reads rotated to the world frame by that (SO(3)) factor's estimate.
+        propagate: ``{factor name: (start, stop)}``, the span of ``(y, u)`` holding the
+            factor's velocity (tangent_dim entries) for the kinematic prior.
+        dt: the step length that scales ``propagate``'s velocities (seconds; needed with it).
     """
 
     innovation: Mapping[str, tuple[int, int]] = field(default_factory=dict)
     relative_only: tuple[str, ...] = ()
+    rotated: Mapping[str, tuple[tuple[int, int], ...]] = field(default_factory=dict)
+    propagate: Mapping[str, tuple[int, int]] = field(default_factory=dict)
+    dt: float | None = None
 
     def __post_init__(self) -> None:
         spans = {}
@@ -57,6 +77,27 @@ class ObserverInputs:
             spans[str(name)] = (a, b)
         object.__setattr__(self, "innovation", spans)
         object.__setattr__(self, "relative_only", tuple(self.relative_only or ()))
+        rotated = {}
+        for name, many in dict(self.rotated or {}).items():
+            if isinstance(many, (str, bytes)) or not hasattr(many, "__iter__"):
+                raise ValueError(
+                    f"rotated[{name!r}] must be a list of (start, stop) spans, got {many!r}."
+                )
+            rotated[str(name)] = tuple(_span(f"rotated[{name!r}]", span) for span in many)
+        object.__setattr__(self, "rotated", rotated)
+        propagate = {
+            str(name): _span(f"propagate[{name!r}]", span)
+            for name, span in dict(self.propagate or {}).items()
+        }
+        object.__setattr__(self, "propagate", propagate)
+        if propagate:
+            dt = self.dt
+            if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt < 1e6:
+                raise ValueError(
+                    f"propagate needs dt, the step length in seconds (a positive number), got "
+                    f"{dt!r}; the system's dt, e.g. 1/285.714 for a 285.714 Hz IMU."
+                )
+            object.__setattr__(self, "dt", float(dt))
 
     def check(self, group: LieGroup, measurement_dim: int) -> ObserverInputs:
         """Raises ``ValueError`` naming the problem unless every factor exists in ``group``, every
@@ -88,6 +129,51 @@ class ObserverInputs:
                 )
         return self
 
+    def _check_extras(self, group: LieGroup, context_dim: int) -> None:
+        """``rotated`` and ``propagate`` against the group and the ``(y, u)`` width."""
+        names = group.factor_names
+        for kind, table in (("rotated", self.rotated), ("propagate", self.propagate)):
+            for name in table:
+                if name not in names:
+                    raise ValueError(
+                        f"{kind} names a factor {name!r} that {group!r} does not have; its "
+                        f"factors are {list(names)}."
+                    )
+        for name, spans in self.rotated.items():
+            if tuple(group.factor(name).element_shape) != (3, 3):
+                raise ValueError(
+                    f"rotated[{name!r}]: the factor must be a rotation of R^3 (elements (3, 3), "
+                    f"SO(3)), got {group.factor(name)!r}."
+                )
+            for a, b in spans:
+                if not (0 <= a and b <= context_dim and b - a == 3):
+                    raise ValueError(
+                        f"rotated[{name!r}] span ({a}, {b}) must be 3 entries of (y, u) (size "
+                        f"{context_dim}): a body-frame 3-vector."
+                    )
+        for name, (a, b) in self.propagate.items():
+            dim = group.factor(name).tangent_dim
+            if not (0 <= a and b <= context_dim and b - a == dim):
+                raise ValueError(
+                    f"propagate[{name!r}] = ({a}, {b}) must be a span of (y, u) (size "
+                    f"{context_dim}) of the factor's tangent_dim = {dim} entries: its velocity."
+                )
+
+    def extra_columns(self) -> list[int]:
+        """The columns of ``(y, u)`` the observer reads raw besides the core's context: the
+        ``propagate`` spans (in factor order of the table), then the ``rotated`` spans."""
+        cols: list[int] = []
+        for a, b in self.propagate.values():
+            cols.extend(range(a, b))
+        for spans in self.rotated.values():
+            for a, b in spans:
+                cols.extend(range(a, b))
+        return cols
+
+    def rotated_dim(self) -> int:
+        """The width of the rotated vectors the core reads: 3 per span."""
+        return 3 * sum(len(spans) for spans in self.rotated.values())
+
     def innovation_dim(self, group: LieGroup) -> int:
         """The width of the innovation terms: the named factors' tangent dimensions."""
         return sum(group.factor(name).tangent_dim for name in self.innovation)
@@ -111,16 +197,31 @@ class ObserverInputs:
         """What the core reads per step: ``embed(xhat)``, ``y`` and ``u`` less the relative-only
         columns, plus the innovation terms. Checks the inputs against the group first."""
         self.check(group, measurement_dim)
+        self._check_extras(group, measurement_dim + input_dim)
         emb, ctx = self.kept_columns(group, measurement_dim + input_dim)
         return (
             (group.embedding_dim if emb is None else len(emb))
             + (measurement_dim + input_dim if ctx is None else len(ctx))
             + self.innovation_dim(group)
+            + self.rotated_dim()
         )
 
     def signature(self) -> dict:
         """JSON-able description, part of the observer's checkpoint signature."""
-        return {
+        out = {
             "innovation": {k: list(v) for k, v in self.innovation.items()},
             "relative_only": list(self.relative_only),
         }
+        if self.rotated or self.propagate:  # absent keys: the signature of older checkpoints
+            out["rotated"] = {k: [list(s) for s in v] for k, v in self.rotated.items()}
+            out["propagate"] = {k: list(v) for k, v in self.propagate.items()}
+            out["dt"] = self.dt
+        return out
+
+
+def _span(what: str, span) -> tuple[int, int]:
+    try:
+        a, b = (int(i) for i in span)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what} must be (start, stop) in (y, u), got {span!r}.") from None
+    return a, b

@@ -13,7 +13,14 @@ The update is chosen per factor (``group.factor_names``; a non-product group is 
 
 * ``"residual"``: ``x_f <- x_f · exp(v_f)`` (``rplus``; for ``R^n`` this is ``x_f + v_f``);
 * ``"absolute"``: ``x_f <- exp(v_f)``, the factor is set to the prediction (for ``R^n`` this is
-  ``x_f = v_f``: the paper's biases ``b = gamma``).
+  ``x_f = v_f``: the paper's biases ``b = gamma``);
+* ``"left"``: ``x_f <- exp(v_f) · x_f``, a correction in the world frame (an extension; for
+  ``R^n`` the same as ``residual``). With world-frame inputs (``ObserverInputs.rotated``) the
+  correction the core must output is then linear in what it reads.
+
+With a kinematic prior (``ObserverInputs.propagate``) the named factors first move by their
+measured velocity, ``x_f^- = x_f · exp(dt · u_f)``, and the core reads and corrects that
+prediction: ``xhat_{k+1} = xhat_k^- · exp(v_k)`` (or ``exp(v_k) · xhat_k^-`` for ``left``).
 
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
@@ -51,7 +58,7 @@ from .inputs import ObserverInputs
 __all__ = ["UPDATE_RULES", "ObserverState", "ResidualObserver"]
 
 #: The per-factor update rules.
-UPDATE_RULES = ("residual", "absolute")
+UPDATE_RULES = ("residual", "absolute", "left")
 
 
 # ---------------------------------------------------------------------- the group update
@@ -82,7 +89,7 @@ def _parse_rules(group: LieGroup, update: Mapping[str, str] | None) -> tuple[str
         if rule not in UPDATE_RULES:
             raise ValueError(
                 f"update rule {rule!r} for factor {name!r} is not one of {UPDATE_RULES} "
-                "(residual: x·exp(v); absolute: x = exp(v), for R^n x = v)."
+                "(residual: x·exp(v); absolute: x = exp(v), for R^n x = v; left: exp(v)·x)."
             )
     return rules
 
@@ -185,8 +192,37 @@ class ResidualObserver(nn.Module):
         # column indices of embed(x) and of (y, u) that the core reads; None: all of them
         self.register_buffer("_keep_embedding", keep_embedding, persistent=False)
         self.register_buffer("_keep_context", keep_context, persistent=False)
-        self.core = self._check_core(core, hidden_size, num_layers)
+        self.core = self._check_core(core, hidden_size, num_layers)  # checks the inputs
+        self._setup_extras(group, self.inputs)
         self._compiled_step = None
+
+    def _setup_extras(self, group: LieGroup, inputs: ObserverInputs) -> None:
+        """The raw ``(y, u)`` columns appended to the context for the kinematic prior and the
+        rotated vectors, and where each factor finds its own among them."""
+        extra = inputs.extra_columns()
+        self._num_extra = len(extra)
+        cols = torch.tensor(extra, dtype=torch.long) if extra else None
+        self.register_buffer("_extra_columns", cols, persistent=False)
+        self._propagate, at = [], 0
+        for name, (a, b) in inputs.propagate.items():
+            f = group.factor(name)
+            self._propagate.append((f, group.element_slice(name), slice(at, at + b - a)))
+            at += b - a
+        self._rotated = []
+        for name, spans in inputs.rotated.items():
+            self._rotated.append((group.element_slice(name), slice(at, at + 3 * len(spans))))
+            at += 3 * len(spans)
+        self._dt = inputs.dt
+
+    def _context(self, full: torch.Tensor) -> torch.Tensor:
+        """The core's context from the whole ``(..., l + m)`` ``(y, u)``: the kept columns, then
+        the raw columns of the kinematic prior and the rotated vectors (``_step`` splits them)."""
+        context = full
+        if self._keep_context is not None:
+            context = full.index_select(-1, self._keep_context)
+        if self._extra_columns is not None:
+            context = torch.cat((context, full.index_select(-1, self._extra_columns)), dim=-1)
+        return context
 
     def _check_core(self, core, hidden_size, num_layers) -> RecurrentCore:
         """``core``, or the default GRU core, checked against the sizes the observer needs."""
@@ -288,6 +324,8 @@ class ResidualObserver(nn.Module):
                 shape = b.factor.element_shape
                 if b.rule == "absolute":
                     new = b.factor.exp(vf)
+                elif b.rule == "left":
+                    new = b.factor.compose(b.factor.exp(vf), x[:, b.element].unflatten(-1, shape))
                 else:
                     new = b.factor.rplus(x[:, b.element].unflatten(-1, shape), vf)
                 new = new.flatten(-len(shape)) if len(shape) > 1 else new
@@ -308,14 +346,37 @@ class ResidualObserver(nn.Module):
         elements (innovation only).
         """
         net = context.dtype
+        extra = None
+        if self._num_extra:
+            context, extra = context[:, : -self._num_extra], context[:, -self._num_extra :]
+            x = self._predict(x, extra)
         e = self._embed(x)
         if self._keep_embedding is not None:
             e = e.index_select(-1, self._keep_embedding)
         parts = [e.to(net), context]
         for (f, xs, _), m in zip(self._innov, measured):
             parts.append(f.rminus(m, x[:, xs].unflatten(-1, f.element_shape)).to(net))
+        for xs, cols in self._rotated:  # world-frame vectors R v of body-frame v
+            R = x[:, xs].unflatten(-1, (3, 3)).to(net)
+            vecs = extra[:, cols].unflatten(-1, (-1, 3))
+            parts.append((vecs @ R.transpose(-1, -2)).flatten(-2))
         v, hidden = self.core.step(torch.cat(parts, dim=-1), hidden)
         return self._update(x, v.to(x.dtype)), hidden
+
+    def _predict(self, x: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
+        """The kinematic prior: each ``propagate`` factor moved by ``dt`` times its velocity."""
+        if not self._propagate:
+            return x
+        x = x.clone()
+        for f, xs, cols in self._propagate:
+            w = extra[:, cols].to(x.dtype) * self._dt
+            shape = f.element_shape
+            if isinstance(f, Euclidean):
+                x[:, xs] = x[:, xs] + w
+            else:
+                new = f.rplus(x[:, xs].unflatten(-1, shape), w)
+                x[:, xs] = new.flatten(-len(shape)) if len(shape) > 1 else new
+        return x
 
     # ------------------------------------------------------------------ checks
 
@@ -371,9 +432,7 @@ class ResidualObserver(nn.Module):
         # (torch.compile, torch.export), which cannot branch on values
         if not torch.compiler.is_compiling() and not bool(torch.isfinite(context).all()):
             raise ValueError("measurements/inputs hold NaN or Inf; the observer needs finite data.")
-        if self._keep_context is not None:
-            context = context.index_select(-1, self._keep_context)
-        return context.transpose(0, 1).contiguous()
+        return self._context(context).transpose(0, 1).contiguous()
 
     # ------------------------------------------------------------------ public API
 

@@ -224,7 +224,8 @@ def _train_and_evaluate(
     if cfg.method.name in LEARNED_METHODS and not cfg.method.target:
         torch.manual_seed(int(cfg.seed))
         model = build_observer(
-            system.group, system.measurement_dim, system.input_dim, cfg.model
+            system.group, system.measurement_dim, system.input_dim, cfg.model,
+            dt=getattr(system, "dt", None),
         ).to(device)
         n_params = sum(p.numel() for p in model.parameters())
         log.info("observer: %s, %d parameters", model.signature(), n_params)
