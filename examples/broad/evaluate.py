@@ -1,0 +1,106 @@
+"""A trained BROAD observer on whole trials: its quaternions, and the benchmark's metric of them.
+
+::
+
+    python -m manifold_nets_examples.broad.evaluate runs/broad --splits val,test
+
+Every trial is estimated from its first sample (TRIAD of the first accelerometer and
+magnetometer reading, then the observer at every sample), all trials of a split in one batch
+(shorter ones padded at the end: the observer is causal, so padding never changes an earlier
+estimate). Writes ``results/learned_<split>.json`` (per trial and mean total, heading and
+inclination RMSE in degrees) and ``results/learned_<split>_quaternions.npz`` (one array per
+trial, ``(T, 4)`` w, x, y, z) for the comparison (:mod:`.compare`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from manifold_nets import load_observer
+from manifold_nets.atomic import write_text_atomic
+from manifold_nets.data import TrajectoryDataset
+
+from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
+from .data import Trial, read_trials, trials_to_dataset
+from .learning import estimate_quaternions
+from .metric import rmse
+from .split import load_split
+
+__all__ = ["pad_trials", "observer_quaternions", "evaluate_run"]
+
+log = logging.getLogger("broad.evaluate")
+
+
+def pad_trials(trials: list[Trial]) -> tuple[TrajectoryDataset, list[int]]:
+    """Whole trials as one batch, padded to the longest (last reading repeated, reference masked);
+    returns the batch and each trial's number of samples."""
+    parts = [trials_to_dataset([t]) for t in trials]
+    parts = [p[0] if isinstance(p, list) else p for p in parts]
+    steps = max(p.length for p in parts)
+    padded = []
+    for p in parts:
+        extra = steps - p.length
+        y = torch.cat((p.measurements, p.measurements[:, -1:].expand(1, extra, -1)), 1)
+        u = torch.cat((p.inputs, p.inputs[:, -1:].expand(1, extra, -1)), 1)
+        s = torch.cat((p.states, p.states[:, -1:].expand(1, extra, 3, 3)), 1)
+        mask = p.mask if p.mask is not None else torch.ones(1, p.length + 1, dtype=torch.bool)
+        mask = torch.cat((mask, torch.zeros(1, extra, dtype=torch.bool)), 1)
+        padded.append(TrajectoryDataset(s, y, u, p.meta, mask))
+    batch = TrajectoryDataset(
+        torch.cat([p.states for p in padded]), torch.cat([p.measurements for p in padded]),
+        torch.cat([p.inputs for p in padded]), {"trials": [t.name for t in trials]},
+        torch.cat([p.mask for p in padded]),
+    )
+    return batch, [p.length + 1 for p in parts]
+
+
+def observer_quaternions(observer, system, trials: list[Trial]) -> list[np.ndarray]:
+    """The observer's quaternions ``(T_i, 4)`` per trial, one per sample."""
+    batch, lengths = pad_trials(trials)
+    q = estimate_quaternions(observer, system, batch)
+    return [q[i, :n] for i, n in enumerate(lengths)]
+
+
+def evaluate_run(run: str | Path, data_dir, split_file=None, splits=("val", "test")) -> dict:
+    """Evaluates the run's observer on whole trials of ``splits``; returns ``{split: rows}``."""
+    run = Path(run)
+    observer, system, _ = load_observer(run)
+    split = load_split(split_file)
+    out = run / "results"
+    out.mkdir(parents=True, exist_ok=True)
+    results = {}
+    for name in splits:
+        trials = read_trials(data_dir, split[name])
+        t0 = time.perf_counter()
+        quats = observer_quaternions(observer, system, trials)
+        seconds = time.perf_counter() - t0
+        rows = {t.name: rmse(q, t.quat, t.movement) for t, q in zip(trials, quats)}
+        mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in next(iter(rows.values()))}
+        results[name] = {"trials": rows, "mean": mean, "seconds": seconds}
+        write_text_atomic(out / f"learned_{name}.json", json.dumps(results[name], indent=1) + "\n")
+        np.savez(out / f"learned_{name}_quaternions.npz", **{t.name: q for t, q in zip(trials, quats)})
+        log.info("%s: mean total %.3f deg, heading %.3f, inclination %.3f (%d trials, %.0f s)",
+                 name, mean["total"], mean["heading"], mean["inclination"], len(trials), seconds)
+    return results
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run", help="a run folder of broad.train")
+    p.add_argument("--data-dir", default="../shared/broad/data_mat")
+    p.add_argument("--split", default=None, help="trials yaml (default configs/broad/trials.yaml)")
+    p.add_argument("--splits", default="val,test")
+    args = p.parse_args(argv)
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
+    evaluate_run(args.run, args.data_dir, args.split, args.splits.split(","))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,162 @@
+"""Train the learned observer for BROAD: pre-train on the simulator, fine-tune on real windows.
+
+::
+
+    python -m manifold_nets_examples.broad.train --data-dir ../shared/broad/data_mat --out runs/broad
+
+Stages (each optional, each a :func:`manifold_nets.fit` run in its own sub-folder):
+
+1. ``pretrain``: sequences of :class:`~.simulator.BroadSimulator` (this IMU's sensor models at
+   ``sigma = 1``), rollouts started from the first sample's TRIAD attitude;
+2. ``finetune``: windows cut from the training trials (validation: windows of the validation
+   trials), started the same way, from the pre-trained weights, with the random-mounting
+   augmentation (:class:`~.learning.RandomMounting`); masked where the reference is missing.
+
+The run folder then holds ``config.yaml`` and ``checkpoints/best.pt`` (the last stage's best
+model: ``manifold_nets.load_observer(<run folder>)`` and ``broad.apply`` read it) and the
+evaluation on whole validation and test trials from their first sample
+(:func:`~.compare.comparison`): ``results/``. The split is ``configs/broad/trials.yaml``.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import torch
+import yaml
+
+from manifold_nets import TrainSettings, fit
+from manifold_nets.atomic import write_text_atomic
+from manifold_nets.checkpoint import load_weights
+from manifold_nets.data import TrajectoryDataset
+
+from .data import read_trials, trials_to_dataset
+from .learning import RandomMounting, make_observer, measured_start, model_config
+from .simulator import BroadSimulator
+from .split import load_split
+
+log = logging.getLogger("broad.train")
+
+
+def parse_args(argv=None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data-dir", default="../shared/broad/data_mat", help="BROAD's .mat files")
+    p.add_argument("--split", default=None, help="trials yaml (default configs/broad/trials.yaml)")
+    p.add_argument("--out", required=True, help="the run folder (created; must not hold a run)")
+    p.add_argument("--hidden-size", type=int, default=64)
+    p.add_argument("--num-layers", type=int, default=2)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--pretrain-sequences", type=int, default=256, help="0: no pre-training")
+    p.add_argument("--pretrain-length", type=int, default=512)
+    p.add_argument("--pretrain-epochs", type=int, default=10)
+    p.add_argument("--window", type=int, default=1024, help="fine-tuning window (samples)")
+    p.add_argument("--stride", type=int, default=512)
+    p.add_argument("--finetune-epochs", type=int, default=10, help="0: no fine-tuning")
+    p.add_argument("--mounting", type=float, default=3.141592653589793,
+                   help="max angle (rad) of the random mounting; 0: no augmentation")
+    p.add_argument("--batch-size", type=int, default=32)
+    p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--max-batches", type=int, default=None)
+    p.add_argument("--init-from", default=None, help="start from this checkpoint or run folder")
+    p.add_argument("--eval-splits", default="val,test", help="splits evaluated on whole trials")
+    p.add_argument("--threads", type=int, default=None)
+    return p.parse_args(argv)
+
+
+def settings(args, epochs: int) -> TrainSettings:
+    return TrainSettings(
+        epochs=epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=0.01,
+        schedule="cosine", lr_min=args.lr / 20, grad_clip=1.0, max_batches=args.max_batches,
+        eval_batch_size=64, threads=args.threads,
+    )
+
+
+def pretrain(args, system, model, out: Path) -> Path:
+    """Stage 1 (simulated data); returns its best checkpoint."""
+    gen = torch.Generator().manual_seed(args.seed)
+    n = args.pretrain_sequences
+    data = system.simulate(n, args.pretrain_length, 1.0, gen)
+    n_val = max(1, n // 8)
+    train, val = data[n_val:], data[:n_val]
+    res = fit(
+        model, train, val, settings(args, args.pretrain_epochs), out_dir=out / "pretrain",
+        seed=args.seed, start=measured_start(system), config=_config(args, system),
+    )
+    log.info("pretrain: best val loss %.4g at epoch %d", res.best_val_loss, res.best_epoch)
+    return res.best_path
+
+
+def finetune(args, system, model, out: Path, split: dict) -> Path:
+    """Stage 2 (real windows of the training trials); returns its best checkpoint."""
+    train = trials_to_dataset(read_trials(args.data_dir, split["train"]), args.window, args.stride)
+    val = trials_to_dataset(read_trials(args.data_dir, split["val"]), args.window, args.window)
+    log.info("finetune: %d training windows, %d validation windows of %d samples",
+             len(train), len(val), args.window)
+    augment = RandomMounting(args.mounting) if args.mounting > 0 else None
+    res = fit(
+        model, train, val, settings(args, args.finetune_epochs), out_dir=out / "finetune",
+        seed=args.seed, start=measured_start(system), augment=augment,
+        config=_config(args, system),
+    )
+    log.info("finetune: best val loss %.4g at epoch %d", res.best_val_loss, res.best_epoch)
+    return res.best_path
+
+
+def _config(args, system) -> dict:
+    """The run config: what ``load_observer`` needs (``system``, ``model``) plus the command's
+    arguments, plain data (fits :class:`manifold_nets.config.RunConfig`)."""
+    model = asdict(model_config(args.hidden_size, args.num_layers))
+    sys_cfg = {"_target_": f"{type(system).__module__}.{type(system).__qualname__}",
+               **system.config()}
+    return {"name": "broad", "seed": args.seed, "system": sys_cfg, "model": model}
+
+
+def run(args) -> Path:
+    out = Path(args.out)
+    if (out / "checkpoints" / "best.pt").exists():
+        raise SystemExit(f"{out} already holds a trained observer; choose another --out.")
+    split = load_split(args.split)
+    read_trials(args.data_dir, [n for names in split.values() for n in names])  # fail early
+    out.mkdir(parents=True, exist_ok=True)
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    system = BroadSimulator()
+    model = make_observer(system, model_config(args.hidden_size, args.num_layers), args.seed)
+    config = _config(args, system)
+    write_text_atomic(out / "config.yaml", yaml.safe_dump(config, sort_keys=False))
+    write_text_atomic(out / "command.json", json.dumps(vars(args), indent=1) + "\n")
+    best = None
+    if args.init_from:
+        best, _ = load_weights(model, args.init_from)
+    if args.pretrain_sequences > 0 and args.pretrain_epochs > 0:
+        best = pretrain(args, system, model, out)
+        load_weights(model, best)
+    if args.finetune_epochs > 0:
+        best = finetune(args, system, model, out, split)
+        load_weights(model, best)
+    if best is None:
+        raise SystemExit("nothing to train: give --pretrain-epochs, --finetune-epochs or --init-from")
+    (out / "checkpoints").mkdir(exist_ok=True)
+    shutil.copyfile(best, out / "checkpoints" / "best.pt")
+    return out
+
+
+def main(argv=None) -> None:
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
+    args = parse_args(argv)
+    t0 = time.perf_counter()
+    out = run(args)
+    log.info("trained in %.0f s: %s", time.perf_counter() - t0, out)
+    from .evaluate import evaluate_run
+
+    evaluate_run(out, args.data_dir, args.split, args.eval_splits.split(","))
+
+
+if __name__ == "__main__":
+    main()
