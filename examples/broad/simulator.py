@@ -312,6 +312,19 @@ class BroadSimulator(System):
         dt = self.dt if dt is None else dt
         return x @ _SO3.exp(drive[..., :3] * dt)
 
+    def rollout(
+        self, x0: torch.Tensor, drive: torch.Tensor, show_progress: bool = False
+    ) -> torch.Tensor:
+        """``(N, T+1, 3, 3)``: :meth:`step`'s product, with every ``exp(Omega_k dt)`` computed
+        in one batched call first (the per-step loop is then one small matmul)."""
+        n, t = drive.shape[:2]
+        turns = _SO3.exp(drive[..., :3] * self.dt)  # (N, T, 3, 3)
+        states = x0.new_empty(n, t + 1, 3, 3)
+        states[:, 0] = x0
+        for k in range(t):
+            states[:, k + 1] = states[:, k] @ turns[:, k]
+        return states
+
     def inputs(self, drive: torch.Tensor) -> torch.Tensor:
         """The gyro reading ``Omega + b + n_gyr`` in rad/s, ``(*batch, 3)``."""
         _check_last(drive, self.drive_dim, "drive")
