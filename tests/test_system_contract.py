@@ -14,6 +14,7 @@ import pytest
 import torch
 
 from manifold_nets_examples.attitude import Attitude
+from manifold_nets_examples.broad.simulator import BroadSimulator
 from manifold_nets_examples.planar import Planar
 from manifold_nets_examples.rigid_body import RigidBody
 from manifold_nets.system import System
@@ -28,6 +29,7 @@ SHIPPED = {
     "rigid_body-rk45": lambda: RigidBody(integrator="rk45"),
     "attitude": lambda: Attitude(),
     "attitude-scaled_noise": lambda: Attitude(magnetic_noise=0.5, gyro_noise=2.0),
+    "broad_sim": lambda: BroadSimulator(),
     "planar-se2": lambda: Planar(),
     "planar-so2_r2": lambda: Planar(pose_group="so2_r2"),
     "turntable": lambda: Turntable(),
