@@ -6,11 +6,16 @@ A :class:`TrajectoryDataset` holds ``N`` sequences of ``T`` steps of a system on
 * ``measurements`` ``(N, T, measurement_dim)``: ``measurements[:, k]`` is ``y_{k+1}``;
 * ``inputs``       ``(N, T, input_dim)``: ``inputs[:, k]`` is ``u_k`` (``input_dim`` may be 0);
 * ``meta``         a JSON-able dict: system, group, sigma, seed, the resolved config, its hash,
-  the train/val/test ``splits`` as ``{name: [start, stop]}`` ranges of sequences.
+  the train/val/test ``splits`` as ``{name: [start, stop]}`` ranges of sequences;
+* ``mask``         optional, bool ``(N, T+1)``: ``True`` where the true state is known. Real
+  recordings lose their ground truth at times (a motion-capture marker hidden); there the state
+  is a placeholder on the group (finite, e.g. the identity) and ``mask`` is ``False``, and the
+  losses and metrics leave those steps out. ``None``: every state is known (simulated data).
 
 On disk (``save_dataset`` / ``load_dataset``) a dataset is one ``.npz`` file read with
-``allow_pickle=False``: the float64 arrays ``states``, ``measurements``, ``inputs``, the int64
-scalar ``format_version`` and ``meta`` as a JSON string. Files are written to a temporary name
+``allow_pickle=False``: the float64 arrays ``states``, ``measurements``, ``inputs``, the bool
+array ``mask`` when there is one, the int64 scalar ``format_version`` and ``meta`` as a JSON
+string. Files are written to a temporary name
 and renamed, so an interrupted write never leaves a half file; the zip entries carry a fixed
 timestamp, so the same dataset always gives the same bytes.
 
@@ -196,6 +201,7 @@ class TrajectoryDataset(torch.utils.data.Dataset):
     measurements: torch.Tensor
     inputs: torch.Tensor
     meta: dict = field(default_factory=dict)
+    mask: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         for name in _ARRAYS:
@@ -217,6 +223,17 @@ class TrajectoryDataset(torch.utils.data.Dataset):
             )
         if not isinstance(self.meta, dict):
             raise DatasetError(f"meta must be a dict, got {type(self.meta).__name__}.")
+        if self.mask is not None:
+            k = self.mask
+            if not isinstance(k, torch.Tensor) or k.dtype != torch.bool:
+                raise DatasetError(
+                    f"mask must be a bool torch.Tensor (N, T+1) or None, got {k!r:.80}."
+                )
+            if tuple(k.shape) != (n, t + 1):
+                raise DatasetError(
+                    f"mask has shape {tuple(k.shape)}; it marks the known states and must be "
+                    f"(N, T+1) = ({n}, {t + 1}) like states {tuple(s.shape)}."
+                )
 
     # ------------------------------------------------------------------ sizes and indexing
 
@@ -240,8 +257,9 @@ class TrajectoryDataset(torch.utils.data.Dataset):
                 raise IndexError(f"sequence {idx} out of range for a dataset of {n} sequences.")
             idx = slice(int(idx) % n, int(idx) % n + 1)
         meta = {k: v for k, v in self.meta.items() if k != "splits"}
+        mask = None if self.mask is None else self.mask[idx]
         return TrajectoryDataset(
-            self.states[idx], self.measurements[idx], self.inputs[idx], meta
+            self.states[idx], self.measurements[idx], self.inputs[idx], meta, mask
         )
 
     def split(self, name: str) -> TrajectoryDataset:
@@ -265,9 +283,10 @@ class TrajectoryDataset(torch.utils.data.Dataset):
     def to(self, dtype: torch.dtype | None = None, device=None) -> TrajectoryDataset:
         """A copy with every tensor moved to ``dtype`` / ``device`` (``meta`` is shared)."""
         conv = dict(dtype=dtype, device=device)
+        mask = None if self.mask is None else self.mask.to(device=device)
         return TrajectoryDataset(
             self.states.to(**conv), self.measurements.to(**conv), self.inputs.to(**conv),
-            self.meta,
+            self.meta, mask,
         )
 
     def __eq__(self, other: object) -> bool:
@@ -277,7 +296,7 @@ class TrajectoryDataset(torch.utils.data.Dataset):
             getattr(self, a).dtype == getattr(other, a).dtype
             and torch.equal(getattr(self, a), getattr(other, a))
             for a in _ARRAYS
-        ) and self.meta == other.meta
+        ) and _same_mask(self.mask, other.mask) and self.meta == other.meta
 
     __hash__ = None  # mutable container of tensors
 
@@ -317,6 +336,12 @@ class TrajectoryDataset(torch.utils.data.Dataset):
         return self
 
 
+def _same_mask(a: torch.Tensor | None, b: torch.Tensor | None) -> bool:
+    if a is None or b is None:
+        return a is None and b is None
+    return torch.equal(a, b)
+
+
 def collate_trajectories(batch) -> TrajectoryDataset:
     """The datasets of ``batch`` (a sequence of :class:`TrajectoryDataset`, e.g. the one-sequence
     items a ``DataLoader`` fetched) concatenated along ``N``: one dataset, ``(B, T+1, ...)``
@@ -352,9 +377,16 @@ def collate_trajectories(batch) -> TrajectoryDataset:
                 )
     meta = {k: v for k, v in first.meta.items() if k != "splits"}
     if len(items) == 1:
-        return TrajectoryDataset(first.states, first.measurements, first.inputs, meta)
+        return TrajectoryDataset(first.states, first.measurements, first.inputs, meta, first.mask)
+    mask = None
+    if any(item.mask is not None for item in items):  # an item without one knows every state
+        mask = torch.cat([
+            item.mask if item.mask is not None
+            else torch.ones(item.states.shape[:2], dtype=torch.bool, device=item.states.device)
+            for item in items
+        ])
     return TrajectoryDataset(
-        *(torch.cat([getattr(item, name) for item in items]) for name in _ARRAYS), meta
+        *(torch.cat([getattr(item, name) for item in items]) for name in _ARRAYS), meta, mask
     )
 
 
@@ -389,6 +421,8 @@ def save_dataset(ds: TrajectoryDataset, path: str | os.PathLike) -> None:
         name: np.ascontiguousarray(getattr(ds, name).detach().cpu().to(torch.float64).numpy())
         for name in _ARRAYS
     }
+    if ds.mask is not None:
+        arrays["mask"] = np.ascontiguousarray(ds.mask.detach().cpu().numpy())
     arrays["format_version"] = np.asarray(FORMAT_VERSION, dtype=np.int64)
     arrays["meta"] = np.asarray(meta)
     _write_npz(Path(path), arrays)
@@ -481,7 +515,9 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
                     f"{path} has no format_version: not a manifold_nets dataset; {_REGENERATE}."
                 )
             # the version first: a file of another version may hold anything else
-            order = ["format_version", *(n for n in (*_ARRAYS, "meta") if n in names)]
+            order = [
+                "format_version", *(n for n in (*_ARRAYS, "mask", "meta") if n in names)
+            ]
             for name in order:
                 shape, _, dtype = _member_header(path, zf, name, disk_size)
                 if name == "format_version":
@@ -494,6 +530,11 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
                 elif name in _ARRAYS and dtype != np.float64:
                     raise DatasetError(
                         f"{path}: {name} has dtype {dtype}, expected float64; {_REGENERATE}."
+                    )
+                elif name == "mask" and dtype != np.bool_:
+                    raise DatasetError(
+                        f"{path}: mask has dtype {dtype}, expected bool (True where the true "
+                        f"state is known); {_REGENERATE}."
                     )
                 elif name == "meta" and (shape != () or dtype.kind != "U"):
                     raise DatasetError(
@@ -544,8 +585,9 @@ def load_dataset(
         if arr.dtype != np.float64:
             raise DatasetError(f"{path}: {name} has dtype {arr.dtype}, expected float64.")
         tensors[name] = torch.from_numpy(arr)
+    mask = torch.from_numpy(contents["mask"]) if "mask" in contents else None
     try:
-        ds = TrajectoryDataset(**tensors, meta=meta)
+        ds = TrajectoryDataset(**tensors, meta=meta, mask=mask)
     except DatasetError as err:
         raise DatasetError(f"{path}: {err}") from None
     check_splits(ds.meta.get("splits"), len(ds), where=str(path))

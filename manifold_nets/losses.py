@@ -33,12 +33,18 @@ def embedding_squared_error(
 
 
 def embedding_mse(
-    group: LieGroup, estimates: torch.Tensor, states: torch.Tensor, skip: int = 1
+    group: LieGroup,
+    estimates: torch.Tensor,
+    states: torch.Tensor,
+    skip: int = 1,
+    mask: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """The paper's ``L``: mean over sequences, steps ``k >= skip`` and embedding coordinates.
 
     ``estimates`` and ``states`` are ``(N, T+1, *element_shape)`` (``x_0 .. x_T``); a scalar in
-    the estimates' dtype is returned.
+    the estimates' dtype is returned. ``mask`` (bool ``(N, T+1)``, a dataset's ``mask``) keeps
+    only the steps whose true state is known: the mean is over those (0 if there are none), and
+    the placeholder states elsewhere never reach the loss or its gradient.
     """
     _check(group, estimates, states)
     if estimates.dim() < 2 + len(group.element_shape) or not 0 <= skip < estimates.shape[1]:
@@ -47,7 +53,16 @@ def embedding_mse(
             f"{tuple(estimates.shape)}."
         )
     sq = embedding_squared_error(group, estimates[:, skip:], states[:, skip:])
-    return sq.mean() / group.embedding_dim
+    if mask is None:
+        return sq.mean() / group.embedding_dim
+    if tuple(mask.shape) != tuple(estimates.shape[:2]) or mask.dtype != torch.bool:
+        raise ValueError(
+            f"mask must be a bool tensor (N, T+1) = {tuple(estimates.shape[:2])}, got "
+            f"{mask.dtype} {tuple(mask.shape)}."
+        )
+    keep = mask[:, skip:].to(sq.device)
+    total = torch.where(keep, sq, torch.zeros_like(sq)).sum()
+    return total / (keep.sum().clamp(min=1) * group.embedding_dim)
 
 
 def factor_errors(

@@ -63,10 +63,13 @@ from .checkpoint import (
 from .config import TrainSettings
 from .data import TrajectoryDataset
 from .losses import embedding_mse
-from .observer import ResidualObserver
+from .observer import ObserverState, ResidualObserver
 
 __all__ = [
+    "BatchAugment",
     "BatchTransform",
+    "StartFn",
+    "batch_loss",
     "EpochCallback",
     "FitResult",
     "TrainingDiverged",
@@ -80,6 +83,13 @@ __all__ = [
 #: A batch transform: ``(measurements (B, T, l), generator) -> measurements``, applied to every
 #: training batch before the rollout (e.g. :class:`~manifold_nets.augmentation.MeasurementNoise`).
 BatchTransform = Callable[[torch.Tensor, torch.Generator], torch.Tensor]
+
+#: A whole-batch transform: ``(batch, generator) -> batch`` (:class:`TrajectoryDataset`), e.g. a
+#: random sensor mounting that rotates the readings and the true states together.
+BatchAugment = Callable[[TrajectoryDataset, torch.Generator], TrajectoryDataset]
+
+#: Where rollouts start: ``batch -> (B, *element_shape)`` initial estimates.
+StartFn = Callable[[TrajectoryDataset], torch.Tensor]
 
 #: A per-epoch callback: called with each log row (``epoch``, ``train_loss`` (``None`` for
 #: epoch 0), ``val_loss``, ``best_val_loss``, ``best_epoch``, ``lr``, ``seconds``).
@@ -185,14 +195,26 @@ def _write_logs(out_dir: Path, history: list[dict]) -> None:
     write_text_atomic(out_dir / "log.json", json.dumps(history, indent=1) + "\n")
 
 
-def _batches(data: TrajectoryDataset, idx: torch.Tensor):
-    inputs = data.inputs[idx] if data.inputs.shape[-1] else None
-    return data.measurements[idx], inputs, data.states[idx]
+def batch_loss(
+    model: ResidualObserver, batch: TrajectoryDataset, start: StartFn | None = None
+) -> torch.Tensor:
+    """The embedding MSE ``L`` of ``model`` rolled out over ``batch`` (its steps whose true state
+    is unknown, ``batch.mask`` False, left out), started at ``start(batch)`` or the identity."""
+    inputs = batch.inputs if batch.inputs.shape[-1] else None
+    state = None
+    if start is not None:
+        x0 = start(batch).to(device=model.device, dtype=model.state_dtype)
+        state = ObserverState(x0, model.core.initial_hidden(len(batch), device=model.device))
+    est = model(batch.measurements, inputs, state=state)
+    return embedding_mse(model.group, est, batch.states.to(est), mask=batch.mask)
 
 
 @torch.no_grad()
 def validation_loss(
-    model: ResidualObserver, data: TrajectoryDataset, batch_size: int = 500
+    model: ResidualObserver,
+    data: TrajectoryDataset,
+    batch_size: int = 500,
+    start: StartFn | None = None,
 ) -> float:
     """The embedding MSE ``L`` of ``model`` on ``data``, averaged over all its sequences."""
     was = model.training
@@ -201,9 +223,7 @@ def validation_loss(
     n = len(data)
     for s in range(0, n, batch_size):
         idx = torch.arange(s, min(n, s + batch_size))
-        y, u, x = _batches(data, idx)
-        est = model(y, u)
-        total += float(embedding_mse(model.group, est, x.to(est))) * len(idx)
+        total += float(batch_loss(model, data[idx], start)) * len(idx)
     model.train(was)
     return total / n
 
@@ -234,6 +254,7 @@ def _prepare(
         data.measurements.to(device=device),
         data.inputs.to(device=device),
         data.meta,
+        None if data.mask is None else data.mask.to(device=device),
     )
 
 
@@ -248,6 +269,8 @@ def fit(
     transform: BatchTransform | None = None,
     config: dict | None = None,
     on_epoch: EpochCallback | None = None,
+    augment: BatchAugment | None = None,
+    start: StartFn | None = None,
 ) -> FitResult:
     """Trains ``model`` in place (it ends with the *last* epoch's weights; load ``best.pt`` for
     the best) and returns a :class:`FitResult`. See the module docstring for the files.
@@ -259,10 +282,17 @@ def fit(
     continues after its epoch. ``transform`` is applied to every training batch's measurements
     with the run's generator (seeded by ``seed``, like the batch order). ``config`` (plain data)
     is stored in the checkpoints. ``on_epoch`` is called with each new log row.
+
+    ``augment(batch, generator) -> batch`` transforms a whole training batch (states,
+    measurements, inputs, mask together: e.g. the sensor mounted differently), before
+    ``transform``. ``start(batch) -> (B, *element_shape)`` is where every rollout (training and
+    validation) starts, e.g. an attitude from the first measurement; default the identity (the
+    paper's). Steps whose true state is unknown (``data.mask``) are left out of the loss.
     """
     check_settings(settings)
     trainer = _Trainer(model, settings, Path(out_dir), seed, config or {})
     trainer.on_epoch = on_epoch
+    trainer.augment, trainer.start_fn = augment, start
     train = _prepare(train_data, model, trainer.device, "training")
     val = _prepare(val_data, model, trainer.device, "validation")
     start = 1 if settings.resume is None else trainer.resume(settings.resume)
@@ -291,6 +321,8 @@ class _Trainer:
         self.history: list[dict] = []
         self.best = {"epoch": 0, "val_loss": math.inf}
         self.on_epoch: EpochCallback | None = None
+        self.augment: BatchAugment | None = None
+        self.start_fn: StartFn | None = None
 
     def tell(self, row: dict) -> None:
         """Hands a new log row to ``on_epoch`` (a copy: the history stays the trainer's)."""
@@ -370,7 +402,7 @@ class _Trainer:
 
     def start(self, val: TrajectoryDataset) -> None:
         """Epoch 0: the starting model's validation loss, its ``best.pt`` and log row."""
-        v0 = validation_loss(self.model, val, self.settings.eval_batch_size)
+        v0 = validation_loss(self.model, val, self.settings.eval_batch_size, self.start_fn)
         if not math.isfinite(v0):
             raise self.diverged("validation loss of the starting model", v0, 0)
         self.best = {"epoch": 0, "val_loss": v0}
@@ -395,7 +427,7 @@ class _Trainer:
         if s.max_batches is not None:
             batches = batches[: s.max_batches]
         train_loss = self.train_batches(epoch, train, batches, transform)
-        val_loss = validation_loss(self.model, val, s.eval_batch_size)
+        val_loss = validation_loss(self.model, val, s.eval_batch_size, self.start_fn)
         if not math.isfinite(val_loss):
             raise self.diverged("validation loss", val_loss, epoch)
         if val_loss < self.best["val_loss"]:
@@ -432,10 +464,12 @@ class _Trainer:
             disable=None if s.progress else True,
         )
         for b, idx in enumerate(bar, 1):
-            y, u, x = _batches(train, idx.to(train.measurements.device))
+            batch = train[idx.to(train.measurements.device)]
+            if self.augment is not None:
+                batch = self.augment(batch, self.gen)
             if transform is not None:
-                y = transform(y, self.gen)
-            loss = embedding_mse(model.group, model(y, u), x)
+                batch.measurements = transform(batch.measurements, self.gen)
+            loss = batch_loss(model, batch, self.start_fn)
             value = loss.item()
             if not math.isfinite(value):
                 bar.close()
