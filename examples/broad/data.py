@@ -24,7 +24,6 @@ reference is missing the state is the identity (a placeholder) and the mask is F
 
 from __future__ import annotations
 
-import dataclasses
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -284,12 +283,7 @@ def trials_to_dataset(
         "starts": [int(s) for _, s in spans],
         "rate": rates.pop(),
     }
-    names = {f.name for f in dataclasses.fields(TrajectoryDataset)}
-    if "mask" in names:
-        return TrajectoryDataset(states, meas, inputs, meta, mask=mask)
-    data = TrajectoryDataset(states, meas, inputs, meta)
-    data.mask = mask  # until TrajectoryDataset carries the mask itself
-    return data
+    return TrajectoryDataset(states, meas, inputs, meta, mask=mask)
 
 
 def split_trials(config: str | Path | None = None) -> tuple[str, dict[str, list[str]]]:
