@@ -28,10 +28,9 @@ from manifold_nets.atomic import write_text_atomic
 from manifold_nets.data import TrajectoryDataset
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
-from .data import Trial, read_trials, trials_to_dataset
+from .data import Trial, read_trials, split_trials, trials_to_dataset
 from .learning import estimate_quaternions
 from .metric import rmse
-from .split import load_split
 
 __all__ = ["pad_trials", "observer_quaternions", "evaluate_run"]
 
@@ -68,11 +67,12 @@ def observer_quaternions(observer, system, trials: list[Trial]) -> list[np.ndarr
     return [q[i, :n] for i, n in enumerate(lengths)]
 
 
-def evaluate_run(run: str | Path, data_dir, split_file=None, splits=("val", "test")) -> dict:
+def evaluate_run(run: str | Path, data_dir=None, split_file=None, splits=("val", "test")) -> dict:
     """Evaluates the run's observer on whole trials of ``splits``; returns ``{split: rows}``."""
     run = Path(run)
     observer, system, _ = load_observer(run)
-    split = load_split(split_file)
+    default_dir, split = split_trials(split_file)
+    data_dir = data_dir or default_dir
     out = run / "results"
     out.mkdir(parents=True, exist_ok=True)
     results = {}
@@ -94,7 +94,7 @@ def evaluate_run(run: str | Path, data_dir, split_file=None, splits=("val", "tes
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("run", help="a run folder of broad.train")
-    p.add_argument("--data-dir", default="../shared/broad/data_mat")
+    p.add_argument("--data-dir", default=None, help="default: the split file's data_dir")
     p.add_argument("--split", default=None, help="trials yaml (default configs/broad/trials.yaml)")
     p.add_argument("--splits", default="val,test")
     args = p.parse_args(argv)

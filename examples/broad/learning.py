@@ -33,6 +33,7 @@ from manifold_nets.config import ModelConfig
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.observer import ObserverState, ResidualObserver
 
+from .metric import matrix_to_quat
 from .simulator import BroadSimulator
 
 __all__ = [
@@ -41,7 +42,6 @@ __all__ = [
     "measured_start",
     "RandomMounting",
     "estimate_quaternions",
-    "matrix_to_quaternion",
 ]
 
 _SO3 = SO3()
@@ -109,18 +109,6 @@ class RandomMounting:
         return TrajectoryDataset(states, y, u, batch.meta, batch.mask)
 
 
-def matrix_to_quaternion(R: np.ndarray) -> np.ndarray:
-    """Unit quaternions ``(w, x, y, z)`` with ``w >= 0`` of rotation matrices ``(..., 3, 3)``
-    (largest-pivot: accurate for every rotation)."""
-    from scipy.spatial.transform import Rotation
-
-    shape = R.shape[:-2]
-    xyzw = Rotation.from_matrix(R.reshape(-1, 3, 3)).as_quat()
-    q = np.concatenate((xyzw[:, 3:], xyzw[:, :3]), axis=1)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)
-    return q.reshape(*shape, 4)
-
-
 @torch.inference_mode()
 def estimate_quaternions(
     observer: ResidualObserver, system: BroadSimulator, data: TrajectoryDataset
@@ -133,4 +121,4 @@ def estimate_quaternions(
     x0 = measured_start(system)(data).to(device=observer.device, dtype=observer.state_dtype)
     state = ObserverState(x0, observer.core.initial_hidden(len(data), device=observer.device))
     est = observer(data.measurements, data.inputs, state=state)
-    return matrix_to_quaternion(est.cpu().numpy())
+    return matrix_to_quat(est.cpu().numpy())

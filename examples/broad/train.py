@@ -36,17 +36,16 @@ from manifold_nets.atomic import write_text_atomic
 from manifold_nets.checkpoint import load_weights
 from manifold_nets.data import TrajectoryDataset
 
-from .data import read_trials, trials_to_dataset
+from .data import read_trials, split_trials, trials_to_dataset
 from .learning import RandomMounting, make_observer, measured_start, model_config
 from .simulator import BroadSimulator
-from .split import load_split
 
 log = logging.getLogger("broad.train")
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--data-dir", default="../shared/broad/data_mat", help="BROAD's .mat files")
+    p.add_argument("--data-dir", default=None, help="BROAD's .mat files (default: the split file's)")
     p.add_argument("--split", default=None, help="trials yaml (default configs/broad/trials.yaml)")
     p.add_argument("--out", required=True, help="the run folder (created; must not hold a run)")
     p.add_argument("--hidden-size", type=int, default=64)
@@ -121,7 +120,8 @@ def run(args) -> Path:
     out = Path(args.out)
     if (out / "checkpoints" / "best.pt").exists():
         raise SystemExit(f"{out} already holds a trained observer; choose another --out.")
-    split = load_split(args.split)
+    data_dir, split = split_trials(args.split)
+    args.data_dir = args.data_dir or data_dir
     read_trials(args.data_dir, [n for names in split.values() for n in names])  # fail early
     out.mkdir(parents=True, exist_ok=True)
     if args.threads:

@@ -1,0 +1,313 @@
+"""Read BROAD trials (``.mat`` files from outside: checked, never trusted) into datasets.
+
+A trial file (Matlab v5, read with ``scipy.io.loadmat(path, squeeze_me=True)``) holds, for ``T``
+samples at ``sampling_rate`` Hz (285.714 Hz in BROAD):
+
+* ``imu_gyr`` ``(T, 3)`` rad/s, ``imu_acc`` ``(T, 3)`` m/s^2, ``imu_mag`` ``(T, 3)`` uT, in the
+  IMU's frame;
+* ``opt_quat`` ``(T, 4)`` the IMU's orientation (w, x, y, z) in East-North-Up,
+  ``v_world = R(q) v_body``, NaN rows where the optical reference is missing;
+* ``movement`` ``(T,)`` 0/1, the samples that count for the error metric.
+
+:func:`read_trial` checks every field (present, numeric, shapes, one ``T``, finite IMU readings,
+a positive finite rate, unit quaternions to 1e-3, a 0/1 movement) and raises
+:class:`BroadFormatError` naming the file, the field and the fix. Only numeric arrays are
+accepted: object, struct, cell and function arrays are refused, nothing from a file is executed.
+
+:func:`trials_to_dataset` makes a :class:`~manifold_nets.data.TrajectoryDataset` on
+``SO3()``: for samples ``0..T-1`` the states are ``x_k = R(quat_k)`` ``(N, L+1, 3, 3)``,
+``measurements[:, k] = (acc_{k+1} / G0, mag_{k+1} / M0)`` ``(N, L, 6)`` and
+``inputs[:, k] = gyr_{k+1}`` ``(N, L, 3)`` rad/s (the rate over the step ``k -> k+1``: each
+sample's gyro reading is integrated into that sample's estimate, as VQF does). Where the
+reference is missing the state is the identity (a placeholder) and the mask is False.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from manifold_nets.data import TrajectoryDataset
+
+__all__ = [
+    "G0",
+    "M0",
+    "BroadFormatError",
+    "Trial",
+    "read_trial",
+    "read_trials",
+    "trials_to_dataset",
+    "quat_to_matrix",
+    "split_trials",
+]
+
+#: Units fed to learning: ``acc / G0`` (about 1 at rest) and ``mag / M0`` (about 1: the field
+#: magnitude in these recordings is about 44 uT); the gyro stays in rad/s.
+G0 = 9.81
+M0 = 44.0
+
+_VECTORS = {"imu_gyr": "rad/s", "imu_acc": "m/s^2", "imu_mag": "uT"}
+_QUAT_TOL = 1e-3
+
+
+class BroadFormatError(ValueError):
+    """A BROAD trial file (or a request for trials) is malformed; the message names the fix."""
+
+
+@dataclass(eq=False)
+class Trial:
+    """One BROAD recording of ``T`` samples (numpy float64; see the module docstring).
+
+    ``gyr``, ``acc``, ``mag`` ``(T, 3)``; ``quat`` ``(T, 4)`` unit (w, x, y, z) or NaN rows;
+    ``movement`` ``(T,)`` bool; ``rate`` in Hz.
+    """
+
+    name: str
+    gyr: np.ndarray
+    acc: np.ndarray
+    mag: np.ndarray
+    quat: np.ndarray
+    movement: np.ndarray
+    rate: float
+
+    def __len__(self) -> int:
+        return len(self.gyr)
+
+    @property
+    def known(self) -> np.ndarray:
+        """``(T,)`` bool: where the reference orientation is known (not NaN)."""
+        return np.isfinite(self.quat).all(axis=1)
+
+
+def _fail(path, field: str, problem: str, fix: str) -> BroadFormatError:
+    return BroadFormatError(f"{path}: field {field!r} {problem}; {fix}.")
+
+
+def _numeric(path, raw: dict, field: str) -> np.ndarray:
+    """``raw[field]`` as a float64 array, refusing anything but a plain numeric array."""
+    if field not in raw:
+        keys = sorted(k for k in raw if not k.startswith("__"))
+        raise _fail(
+            path, field, f"is missing (the file has {keys})",
+            "use an original BROAD trial file from https://github.com/dlaidig/broad (data_mat/)",
+        )
+    value = raw[field]
+    arr = np.asarray(value) if isinstance(value, (int, float, np.number)) else value
+    if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "biuf":
+        kind = getattr(getattr(arr, "dtype", None), "kind", type(arr).__name__)
+        raise _fail(
+            path, field, f"is not a numeric array (got {type(value).__name__} of kind {kind!r}: "
+            "an object, struct, cell, string or function value)",
+            "the BROAD format stores it as a real numeric matrix; re-export the trial",
+        )
+    return arr.astype(np.float64)
+
+
+def _shaped(path, arr: np.ndarray, field: str, width: int | None) -> np.ndarray:
+    want = "(T,)" if width is None else f"(T, {width})"
+    ok = arr.ndim == 1 if width is None else arr.ndim == 2 and arr.shape[1] == width
+    if not ok or len(arr) < 2:
+        raise _fail(
+            path, field, f"has shape {arr.shape}, expected {want} with T >= 2 samples",
+            "store one row per sample",
+        )
+    return arr
+
+
+def _check_quat(path, quat: np.ndarray) -> np.ndarray:
+    """Unit quaternions to 1e-3 (then normalised); a row with any NaN becomes all NaN."""
+    missing = np.isnan(quat).any(axis=1)
+    if np.isinf(quat).any():
+        raise _fail(path, "opt_quat", "holds Inf values", "mark missing samples with NaN rows")
+    norm = np.linalg.norm(np.where(missing[:, None], 1.0, quat), axis=1)
+    norm[missing] = 1.0
+    bad = np.flatnonzero(np.abs(norm - 1.0) > _QUAT_TOL)
+    if bad.size:
+        raise _fail(
+            path, "opt_quat", f"has {bad.size} row(s) that are not unit quaternions (first: "
+            f"sample {bad[0]}, norm {norm[bad[0]]:.6g}; tolerance {_QUAT_TOL})",
+            "store unit quaternions (w, x, y, z), NaN rows where the reference is missing",
+        )
+    out = quat / norm[:, None]
+    out[missing] = np.nan
+    return out
+
+
+def _check_rate(path, raw: dict) -> float:
+    rate = _numeric(path, raw, "sampling_rate")
+    if rate.size != 1 or not math.isfinite(float(rate.reshape(-1)[0])) or rate.reshape(-1)[0] <= 0:
+        raise _fail(
+            path, "sampling_rate", f"is {rate.tolist()!r}, not one positive finite number",
+            "store the sampling frequency in Hz (285.714 in BROAD)",
+        )
+    return float(rate.reshape(-1)[0])
+
+
+def _load(path: Path) -> dict:
+    import scipy.io
+
+    if not path.is_file():
+        raise BroadFormatError(
+            f"{path}: no such file; download the BROAD trials (data_mat/*.mat) from "
+            "https://github.com/dlaidig/broad or pass the right --data-dir."
+        )
+    try:
+        return scipy.io.loadmat(str(path), squeeze_me=True)
+    except Exception as err:  # noqa: BLE001 - any failure of the parser is a format error
+        raise BroadFormatError(
+            f"{path}: not a readable Matlab v5 file ({type(err).__name__}: {err}); use an "
+            "original BROAD trial file."
+        ) from None
+
+
+def read_trial(path: str | Path) -> Trial:
+    """The checked :class:`Trial` in ``path``; :class:`BroadFormatError` if anything is off."""
+    path = Path(path)
+    raw = _load(path)
+    arrays = {f: _shaped(path, _numeric(path, raw, f), f, 3) for f in _VECTORS}
+    quat = _shaped(path, _numeric(path, raw, "opt_quat"), "opt_quat", 4)
+    movement = _shaped(path, _numeric(path, raw, "movement"), "movement", None)
+    rate = _check_rate(path, raw)
+    t = len(arrays["imu_gyr"])
+    for field, arr in [*arrays.items(), ("opt_quat", quat), ("movement", movement)]:
+        if len(arr) != t:
+            raise _fail(
+                path, field, f"has {len(arr)} samples but imu_gyr has {t}",
+                "every per-sample field must have the same number of rows T",
+            )
+    for field, unit in _VECTORS.items():
+        bad = np.flatnonzero(~np.isfinite(arrays[field]).all(axis=1))
+        if bad.size:
+            raise _fail(
+                path, field, f"({unit}) holds NaN/Inf in {bad.size} sample(s), first {bad[0]}",
+                "IMU readings must be finite; cut the trial or fill the gap before using it",
+            )
+    if not np.isin(movement, (0.0, 1.0)).all():
+        raise _fail(path, "movement", "holds values other than 0 and 1", "store a 0/1 mask")
+    return Trial(
+        name=path.stem, gyr=arrays["imu_gyr"], acc=arrays["imu_acc"], mag=arrays["imu_mag"],
+        quat=_check_quat(path, quat), movement=movement.astype(bool), rate=rate,
+    )
+
+
+def read_trials(data_dir: str | Path, names) -> list[Trial]:
+    """The trials ``names`` (file stems, e.g. ``01_undisturbed_slow_rotation_A``) in ``data_dir``."""
+    data_dir = Path(data_dir)
+    names = [str(n).removesuffix(".mat") for n in names]
+    missing = [n for n in names if not (data_dir / f"{n}.mat").is_file()]
+    if missing:
+        raise BroadFormatError(
+            f"{data_dir}: missing trial file(s) {[m + '.mat' for m in missing]}; download the "
+            "BROAD trials (data_mat/*.mat, https://github.com/dlaidig/broad) into that folder or "
+            "pass the right data directory."
+        )
+    return [read_trial(data_dir / f"{n}.mat") for n in names]
+
+
+def quat_to_matrix(q: np.ndarray) -> np.ndarray:
+    """Rotation matrices ``(..., 3, 3)`` of unit quaternions ``(..., 4)`` (w, x, y, z)."""
+    q = np.asarray(q, dtype=np.float64)
+    w, x, y, z = np.moveaxis(q, -1, 0)
+    rows = [
+        [1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
+        [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
+        [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)],
+    ]
+    return np.stack([np.stack(r, axis=-1) for r in rows], axis=-2)
+
+
+def _sequence(trial: Trial, start: int, steps: int):
+    """``(states (L+1, 3, 3), measurements (L, 6), inputs (L, 3), mask (L+1,))`` from ``start``."""
+    sl = slice(start, start + steps + 1)
+    quat = trial.quat[sl]
+    known = np.isfinite(quat).all(axis=1)
+    states = quat_to_matrix(np.where(known[:, None], quat, [1.0, 0.0, 0.0, 0.0]))
+    nxt = slice(start + 1, start + steps + 1)
+    meas = np.concatenate((trial.acc[nxt] / G0, trial.mag[nxt] / M0), axis=1)
+    return states, meas, trial.gyr[nxt], known
+
+
+def _windows(trials: list[Trial], window: int | None, stride: int | None):
+    """``[(trial index, start)]`` and the number of steps ``L`` per sequence."""
+    if window is None:
+        lengths = {len(t) for t in trials}
+        if len(lengths) != 1:
+            raise BroadFormatError(
+                f"whole trials of different lengths ({sorted(lengths)} samples) cannot share "
+                "one dataset; pass window=L (windows of L steps) or one trial per call: "
+                "[trials_to_dataset([t]) for t in trials]."
+            )
+        return [(i, 0) for i in range(len(trials))], lengths.pop() - 1
+    for name, v in (("window", window), ("stride", stride)):
+        if v is not None and (isinstance(v, bool) or not isinstance(v, int) or v < 1):
+            raise BroadFormatError(f"{name} must be a positive integer or None, got {v!r}.")
+    stride = window if stride is None else stride
+    out = [(i, s) for i, t in enumerate(trials) for s in range(0, len(t) - window, stride)]
+    if not out:
+        raise BroadFormatError(
+            f"window={window} is longer than every trial (samples {[len(t) for t in trials]}); "
+            "use a shorter window."
+        )
+    return out, window
+
+
+def trials_to_dataset(
+    trials: list[Trial], window: int | None = None, stride: int | None = None
+) -> TrajectoryDataset:
+    """A dataset of ``trials``; see the module docstring for the layout.
+
+    ``window=None``: one sequence per trial, ``L = T - 1`` steps (the trials must all have the
+    same length ``T``; otherwise call once per trial). ``window=L``: sequences of ``L`` steps
+    (``L + 1`` samples) starting every ``stride`` samples (default ``L``: no overlap).
+    ``meta = {"system": "broad", "trials": [name per sequence], "starts": [first sample per
+    sequence], "rate": Hz}``. The mask ``(N, L+1)`` (True where the reference is known) is the
+    dataset's ``mask`` field.
+    """
+    if not trials:
+        raise BroadFormatError("trials_to_dataset needs at least one trial.")
+    rates = {t.rate for t in trials}
+    if len(rates) != 1:
+        raise BroadFormatError(f"the trials have different sampling rates {sorted(rates)} Hz.")
+    spans, steps = _windows(list(trials), window, stride)
+    parts = [_sequence(trials[i], s, steps) for i, s in spans]
+    states, meas, inputs, mask = (
+        torch.from_numpy(np.stack([p[j] for p in parts])) for j in range(4)
+    )
+    meta = {
+        "system": "broad",
+        "trials": [trials[i].name for i, _ in spans],
+        "starts": [int(s) for _, s in spans],
+        "rate": rates.pop(),
+    }
+    return TrajectoryDataset(states, meas, inputs, meta, mask=mask)
+
+
+def split_trials(config: str | Path | None = None) -> tuple[str, dict[str, list[str]]]:
+    """``(data_dir, {"train": [...], "val": [...], "test": [...]})`` from the split file.
+
+    ``config`` defaults to the shipped ``configs/broad/trials.yaml`` (package
+    ``manifold_nets_configs``); names are file stems without ``.mat``.
+    """
+    import importlib.resources
+
+    import yaml
+
+    if config is None:
+        text = importlib.resources.files("manifold_nets_configs").joinpath(
+            "broad/trials.yaml"
+        ).read_text()
+    else:
+        text = Path(config).read_text()
+    cfg = yaml.safe_load(text)
+    splits = cfg.get("splits") if isinstance(cfg, dict) else None
+    if not isinstance(splits, dict) or not all(isinstance(v, list) for v in splits.values()):
+        raise BroadFormatError(
+            f"{config or 'configs/broad/trials.yaml'}: expected 'splits: {{name: [trial, ...]}}'."
+        )
+    return str(cfg.get("data_dir", "../shared/broad/data_mat")), {
+        k: [str(n).removesuffix(".mat") for n in v] for k, v in splits.items()
+    }
