@@ -87,7 +87,9 @@ class LieGroup(abc.ABC):
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
     ) -> torch.Tensor:
-        """The identity element, shape ``(*batch_shape, *element_shape)``."""
+        """The identity element, shape ``(*batch_shape, *element_shape)``.
+
+        Call ``self.check_dtype(dtype, "identity")`` first (float32/float64 only)."""
 
     @abc.abstractmethod
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -169,6 +171,7 @@ class LieGroup(abc.ABC):
         device: torch.device | str | None = None,
     ) -> torch.Tensor:
         """A random element: ``exp`` of a standard normal tangent vector (SO(n) overrides with Haar)."""
+        self.check_dtype(dtype, "random")
         v = torch.randn(
             *batch_shape, self.tangent_dim, generator=generator, dtype=dtype, device=device
         )
@@ -321,6 +324,17 @@ class LieGroup(abc.ABC):
                 f"{self.name}.{where} expects {what} of shape ({want}), got {tuple(t.shape)}."
             )
 
+    def check_dtype(self, dtype: torch.dtype, where: str) -> None:
+        """Raises ``TypeError`` unless ``dtype`` is float32 or float64, for methods that take a
+        ``dtype`` argument (``identity``, ``random``): the message :meth:`check_shape` gives a
+        tensor of another dtype (float16, bfloat16, integers, complex)."""
+        if dtype not in _DTYPES:
+            raise TypeError(
+                f"{self.name}.{where} expects dtype float32 or float64 (the only supported "
+                f"dtypes), got {dtype}; ask for torch.float32 or torch.float64 and convert the "
+                f"result afterwards if you need another dtype."
+            )
+
     def check_tangent(self, v: torch.Tensor, where: str) -> None:
         """Raises unless ``v`` is a tangent vector ``(*batch, tangent_dim)``.
 
@@ -385,6 +399,7 @@ class MatrixLieGroup(LieGroup):
         """``(*batch, d, d) -> (*batch, tangent_dim)``, the inverse of ``hat``."""
 
     def identity(self, batch_shape=(), dtype=torch.float32, device=None) -> torch.Tensor:
+        self.check_dtype(dtype, "identity")
         eye = torch.eye(self.matrix_dim, dtype=dtype, device=device)
         return eye.expand(*batch_shape, self.matrix_dim, self.matrix_dim).clone()
 
