@@ -13,7 +13,8 @@ The minimum a subclass writes (manif's "minimum API"):
 * ``membership_error`` (how far a tensor is from the group; 0 on it)
 
 Derived once here, overridable for speed: ``rplus``, ``rminus``, ``between``, ``adjoint``,
-``distance``, ``random``, ``check_member``, ``from_embedding``.
+``distance``, ``random``, ``check_member``, ``from_embedding``. ``element_difference`` (``x - y``)
+says when two tensors are the same element; a double cover (unit quaternions) overrides it.
 
 Input validation for authors of a group or a system: ``check_element``, ``check_tangent`` and
 ``check_shape`` raise ``TypeError`` / ``ValueError`` naming the expected shape and dtype (float32
@@ -140,6 +141,17 @@ class LieGroup(abc.ABC):
     def distance(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         """The geodesic-like distance ``||rminus(y, x)||``, shape ``(*batch,)``."""
         return torch.linalg.vector_norm(self.rminus(y, x), dim=-1)
+
+    def element_difference(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """How ``x`` differs from ``y`` entry by entry, shape ``(*batch, *element_shape)``: small
+        exactly when ``x`` and ``y`` are close as group elements. ``groups.testing`` compares
+        every pair of elements through it (the error is its largest entry).
+
+        The default is ``x - y``: one tensor per element. A group whose tensors represent each
+        element more than once overrides it; unit quaternions, a double cover where ``q`` and
+        ``-q`` are one rotation, return ``x - s y`` with ``s = +-1`` the sign of ``<x, y>``.
+        """
+        return x - y
 
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """The adjoint matrix ``Ad_x``, ``(*batch, tangent_dim, tangent_dim)``.
