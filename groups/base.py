@@ -13,7 +13,8 @@ The minimum a subclass writes (manif's "minimum API"):
 * ``membership_error`` (how far a tensor is from the group; 0 on it)
 
 Derived once here, overridable for speed: ``rplus``, ``rminus``, ``between``, ``adjoint``,
-``distance``, ``random``, ``check_member``, ``from_embedding``.
+``distance``, ``random``, ``check_member``, ``from_embedding``. ``element_difference`` (``x - y``)
+says when two tensors are the same element; a double cover (unit quaternions) overrides it.
 
 Input validation for authors of a group or a system: ``check_element``, ``check_tangent`` and
 ``check_shape`` raise ``TypeError`` / ``ValueError`` naming the expected shape and dtype (float32
@@ -87,7 +88,9 @@ class LieGroup(abc.ABC):
         dtype: torch.dtype = torch.float32,
         device: torch.device | str | None = None,
     ) -> torch.Tensor:
-        """The identity element, shape ``(*batch_shape, *element_shape)``."""
+        """The identity element, shape ``(*batch_shape, *element_shape)``.
+
+        Call ``self.check_dtype(dtype, "identity")`` first (float32/float64 only)."""
 
     @abc.abstractmethod
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -139,6 +142,17 @@ class LieGroup(abc.ABC):
         """The geodesic-like distance ``||rminus(y, x)||``, shape ``(*batch,)``."""
         return torch.linalg.vector_norm(self.rminus(y, x), dim=-1)
 
+    def element_difference(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        """How ``x`` differs from ``y`` entry by entry, shape ``(*batch, *element_shape)``: small
+        exactly when ``x`` and ``y`` are close as group elements. ``groups.testing`` compares
+        every pair of elements through it (the error is its largest entry).
+
+        The default is ``x - y``: one tensor per element. A group whose tensors represent each
+        element more than once overrides it; unit quaternions, a double cover where ``q`` and
+        ``-q`` are one rotation, return ``x - s y`` with ``s = +-1`` the sign of ``<x, y>``.
+        """
+        return x - y
+
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """The adjoint matrix ``Ad_x``, ``(*batch, tangent_dim, tangent_dim)``.
 
@@ -169,6 +183,7 @@ class LieGroup(abc.ABC):
         device: torch.device | str | None = None,
     ) -> torch.Tensor:
         """A random element: ``exp`` of a standard normal tangent vector (SO(n) overrides with Haar)."""
+        self.check_dtype(dtype, "random")
         v = torch.randn(
             *batch_shape, self.tangent_dim, generator=generator, dtype=dtype, device=device
         )
@@ -321,6 +336,17 @@ class LieGroup(abc.ABC):
                 f"{self.name}.{where} expects {what} of shape ({want}), got {tuple(t.shape)}."
             )
 
+    def check_dtype(self, dtype: torch.dtype, where: str) -> None:
+        """Raises ``TypeError`` unless ``dtype`` is float32 or float64, for methods that take a
+        ``dtype`` argument (``identity``, ``random``): the message :meth:`check_shape` gives a
+        tensor of another dtype (float16, bfloat16, integers, complex)."""
+        if dtype not in _DTYPES:
+            raise TypeError(
+                f"{self.name}.{where} expects dtype float32 or float64 (the only supported "
+                f"dtypes), got {dtype}; ask for torch.float32 or torch.float64 and convert the "
+                f"result afterwards if you need another dtype."
+            )
+
     def check_tangent(self, v: torch.Tensor, where: str) -> None:
         """Raises unless ``v`` is a tangent vector ``(*batch, tangent_dim)``.
 
@@ -385,6 +411,7 @@ class MatrixLieGroup(LieGroup):
         """``(*batch, d, d) -> (*batch, tangent_dim)``, the inverse of ``hat``."""
 
     def identity(self, batch_shape=(), dtype=torch.float32, device=None) -> torch.Tensor:
+        self.check_dtype(dtype, "identity")
         eye = torch.eye(self.matrix_dim, dtype=dtype, device=device)
         return eye.expand(*batch_shape, self.matrix_dim, self.matrix_dim).clone()
 

@@ -30,6 +30,7 @@ class Euclidean(LieGroup):
         return f"Euclidean({self.n})"
 
     def identity(self, batch_shape=(), dtype=torch.float32, device=None) -> torch.Tensor:
+        self.check_dtype(dtype, "identity")
         return torch.zeros(*batch_shape, self.n, dtype=dtype, device=device)
 
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:

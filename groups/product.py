@@ -119,6 +119,7 @@ class Product(LieGroup):
     # ------------------------------------------------------------------ minimum API
 
     def identity(self, batch_shape=(), dtype=torch.float32, device=None) -> torch.Tensor:
+        self.check_dtype(dtype, "identity")
         return self.join([f.identity(batch_shape, dtype, device) for f in self.factors])
 
     def compose(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -159,4 +160,5 @@ class Product(LieGroup):
         return out
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):
+        self.check_dtype(dtype, "random")
         return self.join([f.random(batch_shape, generator, dtype, device) for f in self.factors])

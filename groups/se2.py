@@ -108,6 +108,7 @@ class SE2(MatrixLieGroup):
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):
         """Uniform (Haar) rotation and standard normal translation."""
+        self.check_dtype(dtype, "random")
         r = SO2().random(batch_shape, generator, dtype, device)
         t = torch.randn(*batch_shape, 2, generator=generator, dtype=dtype, device=device)
         return self.unembed(torch.cat((r.flatten(-2), t), dim=-1))

@@ -93,6 +93,7 @@ class SE23(MatrixLieGroup):
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):
         """Uniform (Haar) attitude; velocity and position standard normal."""
+        self.check_dtype(dtype, "random")
         r = SO3().random(batch_shape, generator, dtype, device)
         vp = torch.randn(*batch_shape, 3, 2, generator=generator, dtype=dtype, device=device)
         return homogeneous(torch.cat((r, vp), dim=-1))

@@ -126,6 +126,7 @@ class SE3(MatrixLieGroup):
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):
         """Uniform (Haar) rotation and standard normal translation."""
+        self.check_dtype(dtype, "random")
         r = SO3().random(batch_shape, generator, dtype, device)
         t = torch.randn(*batch_shape, 3, 1, generator=generator, dtype=dtype, device=device)
         return homogeneous(torch.cat((r, t), dim=-1))

@@ -90,5 +90,6 @@ class SO2(MatrixLieGroup):
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):
         """Uniform (Haar) rotations: the angle is uniform on ``[-pi, pi)``."""
+        self.check_dtype(dtype, "random")
         u = torch.rand(tuple(batch_shape), generator=generator, dtype=dtype, device=device)
         return rotation_2d((2.0 * u - 1.0) * math.pi)

@@ -258,6 +258,7 @@ class SO3(MatrixLieGroup):
 
     def random(self, batch_shape=(), generator=None, dtype=torch.float32, device=None):
         """Uniform (Haar) rotations, from normalised Gaussian quaternions."""
+        self.check_dtype(dtype, "random")
         q = torch.randn(*batch_shape, 4, generator=generator, dtype=dtype, device=device)
         return _quaternion_to_matrix(q / torch.linalg.vector_norm(q, dim=-1, keepdim=True))
 

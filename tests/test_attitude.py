@@ -272,3 +272,23 @@ def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
     assert [r["method"] for r in rows] == [
         "learned", "ekf", "dead_reckoning", "measurement", "learned / ekf"]
     assert rows[0]["attitude_deg"] == pytest.approx(row["attitude_deg est"])
+
+
+def test_a_step_that_can_turn_by_pi_is_refused_naming_the_parameters():
+    """Issue 13 item 2 (was: accepted, losses of 1e11). Message: ``Attitude: one step can turn
+    by up to sqrt(3) * (4 * omega_rms + bias_range) * dt = sqrt(3) * (4 * 1 + 0.2) * 0.5 =
+    3.637 rad, which must be < pi ...; Use a smaller dt, omega_rms or bias_range (dt < 0.4319 s
+    for these values).``"""
+    with pytest.raises(
+        ValueError,
+        match=r"^Attitude: one step can turn by up to sqrt\(3\) \* \(4 \* omega_rms \+ "
+        r"bias_range\) \* dt = sqrt\(3\) \* \(4 \* 1 \+ 0\.2\) \* 0\.5 = 3\.637 rad, which must "
+        r"be < pi .* Use a smaller dt, omega_rms or bias_range \(dt < 0\.4319 s for these "
+        r"values\)\.$",
+    ):
+        Attitude(dt=0.5, freq_max=0.9)
+    with pytest.raises(ValueError, match=r"= sqrt\(3\) \* \(4 \* 50 \+ 0\.2\) \* 0\.1 = 34\.68"):
+        Attitude(omega_rms=50.0)
+    with pytest.raises(ValueError, match=r"\(4 \* 1 \+ 20\) \* 0\.1 = 4\.157 rad"):
+        Attitude(bias_range=20.0)
+    Attitude(dt=0.4, freq_max=0.9)  # just inside the bound: accepted

@@ -449,3 +449,24 @@ def test_the_command_refuses_a_negative_grad_clip_and_says_where_its_folder_is(t
         out.stdout + out.stderr
     )
     assert sorted(p.name for p in out_dir.iterdir()) == [".hydra", "train.log"]  # hydra's own
+
+
+def test_a_typoed_eval_checkpoint_is_refused_before_the_run_folder_gets_a_file(tmp_path):
+    """Issue 13 item 4: the evaluate command with ``eval.checkpoint`` naming no file fails with
+    ``no checkpoint at <path>; train first or fix the path.`` and writes no config.yaml (was:
+    config.yaml written, then the error)."""
+    out_dir, typo = tmp_path / "out", tmp_path / "runs" / "bset.pt"
+    cmd = [sys.executable, "-m", "manifold_nets.cli.evaluate", *_tiny(tmp_path / "data"),
+           f"eval.checkpoint={typo}", f"hydra.run.dir={out_dir}"]  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run(
+        cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False
+    )
+    assert out.returncode != 0
+    assert f"no checkpoint at {typo}; train first or fix the path." in out.stderr
+    left = sorted(p.name for p in out_dir.iterdir())
+    assert left == [".hydra", "evaluate.log"], left  # hydra's own files only
+    # a run folder without best.pt is refused the same way
+    with pytest.raises(CheckpointError, match=r"^no best\.pt in the run folder"):
+        run(_compose(*_tiny(tmp_path / "data", f"eval.checkpoint={tmp_path}")), tmp_path / "ev")
+    assert not (tmp_path / "ev").exists()

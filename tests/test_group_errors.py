@@ -190,6 +190,25 @@ def test_half_precision_is_refused_naming_the_supported_dtypes(group: LieGroup, 
 
 
 @pytest.mark.parametrize("group", SHIPPED, ids=ids)
+@pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16], ids=["float16", "bfloat16"])
+def test_identity_and_random_refuse_half_precision(group: LieGroup, dtype) -> None:
+    """Issue 13 item 3. Message: ``SO3.random expects dtype float32 or float64 (the only
+    supported dtypes), got torch.float16; ask for torch.float32 or torch.float64 and convert the
+    result afterwards if you need another dtype.``"""
+    for where, call in (
+        ("identity", lambda: group.identity((2,), dtype=dtype)),
+        ("random", lambda: group.random((2,), dtype=dtype)),
+    ):
+        with pytest.raises(
+            TypeError,
+            match=rf"^{re.escape(group.name)}\.{where} expects dtype float32 or float64 \(the "
+            rf"only supported dtypes\), got {dtype}; ask for torch.float32 or torch.float64",
+        ):
+            call()
+    assert group.identity((2,), dtype=torch.float64).dtype == torch.float64
+
+
+@pytest.mark.parametrize("group", SHIPPED, ids=ids)
 def test_compose_and_between_name_both_batch_shapes(group: LieGroup) -> None:
     """Message: ``SO3.compose: the batch shapes of x (2,) and y (3,) do not broadcast (x has
     shape (2, 3, 3), y (3, 3, 3)); batch dimensions must be equal or 1, ...``"""

@@ -283,3 +283,23 @@ def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
     rows = compare_run(tmp_path / "run", planar_estimators, plots=False)
     assert {r["method"] for r in rows} == {
         "learned", "ekf", "dead_reckoning", "measurement", "learned / ekf"}
+
+
+def test_a_step_that_can_turn_by_pi_is_refused_naming_the_parameters():
+    """Issue 13 item 2 (was: accepted, silent garbage). Message: ``Planar: one step can turn by
+    up to (4 * turn_rate_rms + turn_rate_bias_range) * dt = (4 * 10 + 0.1) * 0.1 = 4.01 rad,
+    which must be < pi ...; Use a smaller dt, turn_rate_rms or turn_rate_bias_range (dt <
+    0.07834 s for these values).``"""
+    with pytest.raises(
+        ValueError,
+        match=r"^Planar: one step can turn by up to \(4 \* turn_rate_rms \+ "
+        r"turn_rate_bias_range\) \* dt = \(4 \* 10 \+ 0\.1\) \* 0\.1 = 4\.01 rad, which must be "
+        r"< pi .* Use a smaller dt, turn_rate_rms or turn_rate_bias_range \(dt < 0\.07834 s for "
+        r"these values\)\.$",
+    ):
+        Planar(turn_rate_rms=10.0)
+    with pytest.raises(ValueError, match=r"\(4 \* 0\.5 \+ 0\.1\) \* 2 = 4\.2 rad"):
+        Planar(dt=2.0, freq_max=0.2)
+    with pytest.raises(ValueError, match=r"\(4 \* 0\.5 \+ 40\) \* 0\.1 = 4\.2 rad"):
+        Planar(turn_rate_bias_range=40.0)
+    Planar(turn_rate_rms=7.0)  # (28 + 0.1) * 0.1 = 2.81 rad: accepted

@@ -23,7 +23,7 @@ import math
 
 import torch
 
-__all__ = ["check_frequencies", "random_sinusoids"]
+__all__ = ["PEAK_OVER_RMS", "check_frequencies", "check_turn_per_step", "random_sinusoids"]
 
 _DTYPE = torch.float64
 
@@ -41,6 +41,39 @@ def check_frequencies(owner: str, freq_min: float, freq_max: float, dt: float) -
             f"{owner}: freq_max={freq_max} Hz is at or above the Nyquist frequency 1/(2 dt) = "
             f"{nyquist:g} Hz of the step dt={dt}; the sampled motion would alias. Lower freq_max "
             "or dt."
+        )
+
+
+#: The stated bound on a profile's size, in units of its rms: ``|s_c(t)| <= 4 rms``. The law has
+#: no hard bound (the amplitudes are Gaussian), so this is a conservative multiple rather than a
+#: guarantee: ``s_c(t)`` has variance ``rms^2``, and a value beyond 4 rms is as rare as a 4-sigma
+#: Gaussian one (~6e-5 of the samples).
+PEAK_OVER_RMS = 4.0
+
+
+def check_turn_per_step(
+    owner: str, dt: float, rms_name: str, rms: float, bias_name: str, bias: float, axes: int
+) -> None:
+    """Raises ``ValueError`` unless a measured rate (a profile of rms ``rms`` per axis plus a bias
+    of at most ``bias``, on ``axes`` axes) turns by less than pi in one step::
+
+        sqrt(axes) * (PEAK_OVER_RMS * rms + bias) * dt < pi,
+
+    so an observer or filter that integrates the measured rate over a step never wraps the
+    exponential (and ``log`` of one step stays unique). The message names the parameters and
+    the largest ``dt`` they allow.
+    """
+    rate = math.sqrt(axes) * (PEAK_OVER_RMS * rms + bias)
+    turn = rate * dt
+    if not turn < math.pi:
+        root = f"sqrt({axes}) * " if axes > 1 else ""
+        raise ValueError(
+            f"{owner}: one step can turn by up to {root}({PEAK_OVER_RMS:g} * {rms_name} + "
+            f"{bias_name}) * dt = {root}({PEAK_OVER_RMS:g} * {rms:g} + {bias:g}) * {dt:g} = "
+            f"{turn:.4g} rad, which must be < pi ({PEAK_OVER_RMS:g} * {rms_name}: the stated "
+            "peak of the random sinusoids); an observer or filter that integrates the measured "
+            f"rate over a step would wrap the exponential. Use a smaller dt, {rms_name} or "
+            f"{bias_name} (dt < {math.pi / rate:.4g} s for these values)."
         )
 
 

@@ -33,6 +33,12 @@ an uncalibrated consumer MEMS gyroscope's zero-rate offset), one draw per sequen
 ``omega_rms = 1`` rad/s per axis with frequencies in ``[0.05, 1]`` Hz (handheld motion);
 ``dt = 0.1`` s.
 
+Step bound: the measured rate ``Omega + b`` turns by at most
+``sqrt(3) (4 omega_rms + bias_range) dt`` in a step (0.73 rad by default), and the constructor
+refuses parameters making this ``>= pi``. The sinusoids have no hard bound (Gaussian
+amplitudes), so ``4 omega_rms`` per axis is a stated conservative peak
+(:data:`~manifold_nets_examples.attitude.motion.PEAK_OVER_RMS`), not a guarantee.
+
 Raw baseline (:meth:`Attitude.measurement_errors`, :meth:`Attitude.state_from_measurement`):
 TRIAD (:mod:`manifold_nets_examples.attitude.triad`) from the two measured directions, gravity
 first. Dead reckoning reads the drive as the biased gyro (:meth:`Attitude.drive_from_measurement`).
@@ -49,7 +55,7 @@ from groups import SO3, Euclidean, Product
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.system import System, check_last_dim, check_number
 
-from .motion import check_frequencies, random_sinusoids
+from .motion import check_frequencies, check_turn_per_step, random_sinusoids
 from .triad import triad
 
 __all__ = ["GRAVITY", "MAGNETIC", "Attitude"]
@@ -110,6 +116,9 @@ class Attitude(System):
             raise ValueError(f"Attitude: num_terms must be a positive integer, got {num_terms!r}.")
         self.num_terms = num_terms
         self.bias_range = _number("bias_range", bias_range)
+        check_turn_per_step(
+            "Attitude", self.dt, "omega_rms", self.omega_rms, "bias_range", self.bias_range, 3
+        )
         self.gravity = _vector("gravity", gravity)
         self.magnetic = _vector("magnetic", magnetic)
         g, m = torch.tensor(self.gravity), torch.tensor(self.magnetic)

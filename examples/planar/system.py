@@ -44,6 +44,12 @@ Laws (defaults; each a parameter): ``p_0 ~ U[-position_range, position_range]^2`
 draw per sequence; ``v_mean ~ U[0.5, 1.5]`` m/s, ``speed_variation = 0.2``, ``turn_rate_rms =
 0.5`` rad/s, frequencies in ``[0.02, 0.5]`` Hz; ``dt = 0.1`` s (10 Hz fixes).
 
+Step bound: the measured turn rate ``omega + b_omega`` turns the heading by at most
+``(4 turn_rate_rms + turn_rate_bias_range) dt`` in a step (0.21 rad by default), and the
+constructor refuses parameters making this ``>= pi``. The sinusoids have no hard bound
+(Gaussian amplitudes), so ``4 turn_rate_rms`` is a stated conservative peak
+(:data:`~manifold_nets_examples.attitude.motion.PEAK_OVER_RMS`), not a guarantee.
+
 Raw baselines (:meth:`Planar.measurement_errors`): the fix itself for the position, and the
 course over ground (the direction from the previous fix to the current one) for the heading.
 :meth:`Planar.state_from_measurement` reads the pose at the fix (heading 0, zero biases) and
@@ -57,7 +63,11 @@ import math
 
 import torch
 
-from manifold_nets_examples.attitude.motion import check_frequencies, random_sinusoids
+from manifold_nets_examples.attitude.motion import (
+    check_frequencies,
+    check_turn_per_step,
+    random_sinusoids,
+)
 from groups import SE2, SO2, Euclidean, Product
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.system import System, check_last_dim, check_number
@@ -143,6 +153,10 @@ class Planar(System):
         self.num_terms = num_terms
         self.speed_bias_range = _number("speed_bias_range", speed_bias_range)
         self.turn_rate_bias_range = _number("turn_rate_bias_range", turn_rate_bias_range)
+        check_turn_per_step(
+            "Planar", self.dt, "turn_rate_rms", self.turn_rate_rms,
+            "turn_rate_bias_range", self.turn_rate_bias_range, 1,
+        )  # fmt: skip
         self.gps_noise = _number("gps_noise", gps_noise)
         self.speed_noise = _number("speed_noise", speed_noise)
         self.turn_rate_noise = _number("turn_rate_noise", turn_rate_noise)

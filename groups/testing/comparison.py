@@ -6,7 +6,8 @@ actual with expected values and records the worst error in a :class:`CheckResult
 that fails raises ``AssertionError`` naming the property, group, dtype, batch shape, the error
 against its tolerance and the input where it occurred.
 
-Errors are relative: an element's error is ``max |actual - expected| / scale`` with
+Errors are relative: an element's error is ``max |actual - expected| / scale`` (the difference
+is the group's ``element_difference``, so a double cover compares ``q`` with ``-q`` as equal) with
 ``scale >= 1 + max |expected|`` (times the sizes of the factors where rounding is amplified,
 e.g. ``|x| |x^-1|`` for ``x x^-1 = e``); tangent vectors are compared with the angle blocks and
 the other coordinates scaled separately. All tolerances live in :data:`TOLERANCES`.
@@ -332,6 +333,31 @@ class Case:
             self.fail(f"{what}: shape {tuple(actual.shape)} != expected {tuple(expected.shape)}")
         a, e = actual.detach().double(), expected.detach().double()
         err = _amax(a - e, trailing) / (magnitude(e, trailing) * scale)
+        self.within(what, err, self.tol.value, inputs=inputs, unit=" (relative)")
+
+    def close_elements(
+        self,
+        what: str,
+        actual: torch.Tensor,
+        expected: torch.Tensor,
+        *,
+        scale: torch.Tensor | float = 1.0,
+        inputs: dict[str, torch.Tensor] | None = None,
+    ) -> None:
+        """:meth:`close` for group elements: the difference is the group's
+        ``element_difference(actual, expected)``, so a group with several tensors per element
+        (unit quaternions, ``q`` and ``-q``) is compared as a group, not entry by entry."""
+        if tuple(actual.shape) != tuple(expected.shape):
+            self.fail(f"{what}: shape {tuple(actual.shape)} != expected {tuple(expected.shape)}")
+        a, e = actual.detach().double(), expected.detach().double()
+        ne = len(self.group.element_shape)
+        diff = self.group.element_difference(a, e)
+        if tuple(diff.shape) != tuple(e.shape):
+            self.fail(
+                f"element_difference returned shape {tuple(diff.shape)}; expected "
+                f"{tuple(e.shape)}, the shape of its arguments"
+            )
+        err = _amax(diff, ne) / (magnitude(e, ne) * scale)
         self.within(what, err, self.tol.value, inputs=inputs, unit=" (relative)")
 
     def close_tangent(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
+from functools import partial
 
 import torch
 
@@ -114,10 +115,10 @@ def identity(c: Case, data) -> None:
     x = c.x(data, "x")
     e = G.identity(bs, dtype=dt)
     zero = torch.zeros(*bs, G.tangent_dim, dtype=dt)
-    c.close("compose(identity, x) == x", G.compose(e, x), x, trailing=ne, inputs={"x": x})
-    c.close("compose(x, identity) == x", G.compose(x, e), x, trailing=ne, inputs={"x": x})
-    c.close("inverse(identity) == identity", G.inverse(e), e, trailing=ne)
-    c.close("exp(0) == identity", G.exp(zero), e, trailing=ne)
+    c.close_elements("compose(identity, x) == x", G.compose(e, x), x, inputs={"x": x})
+    c.close_elements("compose(x, identity) == x", G.compose(x, e), x, inputs={"x": x})
+    c.close_elements("inverse(identity) == identity", G.inverse(e), e)
+    c.close_elements("exp(0) == identity", G.exp(zero), e)
     c.close_tangent("log(identity) == 0", G.log(e), zero)
     c.close_tangent(
         "rminus(x, x) == 0", G.rminus(x, x), zero, scale=element_magnitude(G, x) ** 2,
@@ -133,15 +134,15 @@ def inverse(c: Case, data) -> None:
     xi, yi = G.inverse(x), G.inverse(y)
     s = element_magnitude(G, x) * element_magnitude(G, xi)
     ins = {"x": x}
-    c.close("compose(x, inverse(x)) == identity", G.compose(x, xi), e, trailing=ne, scale=s,
+    c.close_elements("compose(x, inverse(x)) == identity", G.compose(x, xi), e, scale=s,
             inputs=ins)
-    c.close("compose(inverse(x), x) == identity", G.compose(xi, x), e, trailing=ne, scale=s,
+    c.close_elements("compose(inverse(x), x) == identity", G.compose(xi, x), e, scale=s,
             inputs=ins)
-    c.close("inverse(inverse(x)) == x", G.inverse(xi), x, trailing=ne, scale=s, inputs=ins)
+    c.close_elements("inverse(inverse(x)) == x", G.inverse(xi), x, scale=s, inputs=ins)
     s2 = s * element_magnitude(G, y) * element_magnitude(G, yi)
-    c.close(
+    c.close_elements(
         "inverse(compose(x, y)) == compose(inverse(y), inverse(x))",
-        G.inverse(G.compose(x, y)), G.compose(yi, xi), trailing=ne, scale=s2,
+        G.inverse(G.compose(x, y)), G.compose(yi, xi), scale=s2,
         inputs={"x": x, "y": y},
     )  # fmt: skip
 
@@ -151,9 +152,9 @@ def associativity(c: Case, data) -> None:
     G, ne = c.group, len(c.group.element_shape)
     x, y, z = c.x(data, "x"), c.x(data, "y"), c.x(data, "z")
     s = element_magnitude(G, x) * element_magnitude(G, y) * element_magnitude(G, z)
-    c.close(
+    c.close_elements(
         "compose(compose(x, y), z) == compose(x, compose(y, z))",
-        G.compose(G.compose(x, y), z), G.compose(x, G.compose(y, z)), trailing=ne, scale=s,
+        G.compose(G.compose(x, y), z), G.compose(x, G.compose(y, z)), scale=s,
         inputs={"x": x, "y": y, "z": z},
     )  # fmt: skip
 
@@ -162,7 +163,7 @@ def exp_log(c: Case, data) -> None:
     """``exp(log(x)) = x`` for every element, angle pi included."""
     G, ne = c.group, len(c.group.element_shape)
     x = c.x(data, "x")
-    c.close("exp(log(x)) == x", G.exp(G.log(x)), x, trailing=ne,
+    c.close_elements("exp(log(x)) == x", G.exp(G.log(x)), x,
             inputs={"x": x, "log(x)": G.log(x)})
 
 
@@ -184,10 +185,9 @@ def log_exp(c: Case, data) -> None:
     got = torch.where(mask.unsqueeze(-1), got, v)  # elements at the cut locus are not compared
     c.close_tangent("log(exp(v)) == v (angles < pi - margin)", got, v, tol=tol, inputs={"v": v})
     # At and beyond the margin the log may pick the other branch, but it must stay on the group.
-    c.close(
-        "exp(log(exp(v))) == exp(v)", G.exp(G.log(G.exp(v))), G.exp(v),
-        trailing=len(G.element_shape), inputs={"v": v},
-    )  # fmt: skip
+    c.close_elements(
+        "exp(log(exp(v))) == exp(v)", G.exp(G.log(G.exp(v))), G.exp(v), inputs={"v": v}
+    )
 
 
 def _matrix_exp_reference(a: torch.Tensor) -> torch.Tensor:
@@ -213,7 +213,7 @@ def matrix_exp(c: Case, data) -> None:
     v = c.v(data, "v")
     ref = _matrix_exp_reference(G.hat(v.double()))
     c.shape("hat(v)", G.hat(v), G.element_shape)
-    c.close(f"exp(v) in {c.dtype} == matrix_exp(hat(v)) in float64", G.exp(v), ref, trailing=2,
+    c.close_elements(f"exp(v) in {c.dtype} == matrix_exp(hat(v)) in float64", G.exp(v), ref,
             inputs={"v": v})
     c.close_tangent("vee(hat(v)) == v", G.vee(G.hat(v)), v, inputs={"v": v})
 
@@ -228,7 +228,7 @@ def adjoint(c: Case, data) -> None:
     lhs = G.compose(G.compose(x, ev), xi)
     rhs = G.exp(_matvec(ad_x, v))
     s = element_magnitude(G, x) * element_magnitude(G, xi) * element_magnitude(G, ev)
-    c.close("compose(x, exp(v), inverse(x)) == exp(adjoint(x) v)", rhs, lhs, trailing=ne,
+    c.close_elements("compose(x, exp(v), inverse(x)) == exp(adjoint(x) v)", rhs, lhs,
             scale=s, inputs={"x": x, "v": v})
     ad_y = G.adjoint(y)
     c.close("adjoint(compose(x, y)) == adjoint(x) adjoint(y)", G.adjoint(G.compose(x, y)),
@@ -300,12 +300,12 @@ def embedding(c: Case, data) -> None:
     c.shape("embed(x)", z, (G.embedding_dim,))
     if G.embedding_is_flat:
         _flat_embedding(c, x, z)
-    c.close("unembed(embed(x)) == x", G.unembed(z), x, trailing=ne, inputs={"x": x})
+    c.close_elements("unembed(embed(x)) == x", G.unembed(z), x, inputs={"x": x})
     try:
         back = G.from_embedding(z)
     except GroupMembershipError as err:
         c.fail(f"from_embedding(embed(x)) rejected an element of the group: {err}")
-    c.close("from_embedding(embed(x)) == x", back, x, trailing=ne, inputs={"x": x})
+    c.close_elements("from_embedding(embed(x)) == x", back, x, inputs={"x": x})
     c.close("embed(unembed(embed(x))) == embed(x)", G.embed(G.unembed(z)), z, trailing=1)
     _embedding_rejects(c, data, z)
 
@@ -317,12 +317,12 @@ def rplus_rminus(c: Case, data) -> None:
     xi = G.inverse(x)
     sx = element_magnitude(G, x) * element_magnitude(G, xi)
     ins = {"x": x, "y": y}
-    c.close("rplus(x, v) == compose(x, exp(v))", G.rplus(x, v), G.compose(x, G.exp(v)),
-            trailing=ne, scale=sx, inputs={"x": x, "v": v})
-    c.close("between(x, y) == compose(inverse(x), y)", G.between(x, y), G.compose(xi, y),
-            trailing=ne, scale=sx, inputs=ins)
+    c.close_elements("rplus(x, v) == compose(x, exp(v))", G.rplus(x, v), G.compose(x, G.exp(v)),
+                     scale=sx, inputs={"x": x, "v": v})
+    c.close_elements("between(x, y) == compose(inverse(x), y)", G.between(x, y),
+                     G.compose(xi, y), scale=sx, inputs=ins)
     d = G.rminus(y, x)
-    c.close("rplus(x, rminus(y, x)) == y", G.rplus(x, d), y, trailing=ne,
+    c.close_elements("rplus(x, rminus(y, x)) == y", G.rplus(x, d), y,
             scale=sx * element_magnitude(G, y), inputs=ins)
     mask, tol = _log_exp_tolerance(c, v)
     got = torch.where(mask.unsqueeze(-1), G.rminus(G.rplus(x, v), x), v)
@@ -409,13 +409,13 @@ def batched_vs_looped(c: Case, data) -> None:
     G, bs = c.group, c.batch_shape
     x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
     ne = len(G.element_shape)
-    # name -> (operation, number of trailing dimensions of its output)
-    ops: dict[str, tuple[Callable[..., torch.Tensor], int]] = {
-        "compose(x, y)": (lambda x_, y_, v_: G.compose(x_, y_), ne),
-        "inverse(x)": (lambda x_, y_, v_: G.inverse(x_), ne),
-        "exp(v)": (lambda x_, y_, v_: G.exp(v_), ne),
+    # name -> (operation, number of trailing dimensions of its output; None: an element)
+    ops: dict[str, tuple[Callable[..., torch.Tensor], int | None]] = {
+        "compose(x, y)": (lambda x_, y_, v_: G.compose(x_, y_), None),
+        "inverse(x)": (lambda x_, y_, v_: G.inverse(x_), None),
+        "exp(v)": (lambda x_, y_, v_: G.exp(v_), None),
         "log(x)": (lambda x_, y_, v_: G.log(x_), 1),
-        "rplus(x, v)": (lambda x_, y_, v_: G.rplus(x_, v_), ne),
+        "rplus(x, v)": (lambda x_, y_, v_: G.rplus(x_, v_), None),
         "rminus(y, x)": (lambda x_, y_, v_: G.rminus(y_, x_), 1),
         "embed(x)": (lambda x_, y_, v_: G.embed(x_), 1),
         "adjoint(x)": (lambda x_, y_, v_: G.adjoint(x_), 2),
@@ -432,8 +432,9 @@ def batched_vs_looped(c: Case, data) -> None:
         batched = fn(x, y, v)
         looped = torch.stack([fn(xs[i], ys[i], vs[i]) for i in idx])
         picked = batched.reshape(n, *batched.shape[len(bs):])[idx]
-        c.close(f"batched {name} == per-element {name}", picked, looped, trailing=trailing,
-                scale=scale, inputs={"x": xs[idx], "y": ys[idx], "v": vs[idx]})
+        close = c.close_elements if trailing is None else partial(c.close, trailing=trailing)
+        close(f"batched {name} == per-element {name}", picked, looped, scale=scale,
+              inputs={"x": xs[idx], "y": ys[idx], "v": vs[idx]})
 
 
 def broadcasting(c: Case, data) -> None:
@@ -447,17 +448,17 @@ def broadcasting(c: Case, data) -> None:
     s = element_magnitude(G, xe) * element_magnitude(G, ye)
     out = G.compose(x, y)
     c.shape("compose(x (3, 1), y (1, 2))", out, el, batch=(3, 2))
-    c.close("compose broadcast (3, 1) x (1, 2)", out, G.compose(xe, ye), trailing=ne, scale=s)
+    c.close_elements("compose broadcast (3, 1) x (1, 2)", out, G.compose(xe, ye), scale=s)
     out = G.rplus(x, v)
     c.shape("rplus(x (3, 1), v (1, 2))", out, el, batch=(3, 2))
-    c.close("rplus broadcast (3, 1) x (1, 2)", out, G.rplus(xe, ve), trailing=ne,
+    c.close_elements("rplus broadcast (3, 1) x (1, 2)", out, G.rplus(xe, ve),
             scale=s * magnitude(ve, 1))
     # an unbatched element against a batch of the case's shape
     x0, yb = c.x(data, "x ()", batch_shape=()), c.x(data, "y")
     out = G.compose(x0, yb)
     c.shape("compose(x (), y batch)", out, el)
     x0e = x0.expand(*c.batch_shape, *el)
-    c.close("compose broadcast () x batch", out, G.compose(x0e, yb), trailing=ne,
+    c.close_elements("compose broadcast () x batch", out, G.compose(x0e, yb),
             scale=element_magnitude(G, x0e) * element_magnitude(G, yb))
 
 

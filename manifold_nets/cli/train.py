@@ -57,7 +57,7 @@ from manifold_nets.builders import (
     build_system,
     resolve_device,
 )
-from manifold_nets.checkpoint import load_weights
+from manifold_nets.checkpoint import load_checkpoint, load_weights, resolve_checkpoint
 from manifold_nets.config import RunConfig
 from manifold_nets.datasets import training_data
 from manifold_nets.objective import objective_value, parse_objective
@@ -197,6 +197,7 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     system = build_system(cfg.system)
     if cfg.method.name not in LEARNED_METHODS or cfg.method.target:
         build_estimator_factory(system, cfg.method)  # an unknown method: refused now
+    _check_eval_checkpoint(cfg)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = OmegaConf.to_container(cfg, resolve=True)
@@ -214,6 +215,14 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
         metrics["objective"] = objective_value(cfg.objective, metrics)
         log.info("objective %s = %.6g", cfg.objective, metrics["objective"])
     return metrics
+
+
+def _check_eval_checkpoint(cfg: DictConfig) -> None:
+    """Reads ``eval.checkpoint`` once before the run folder gets anything, so a typo'd path or
+    an unreadable file is refused (``CheckpointError`` naming the file) and leaves no half-made
+    run folder; whether it fits the model is checked when it is loaded into the observer."""
+    if cfg.eval.checkpoint and cfg.method.name in LEARNED_METHODS and not cfg.method.target:
+        load_checkpoint(resolve_checkpoint(absolute(cfg.eval.checkpoint), name="best.pt"))
 
 
 def _train_and_evaluate(
