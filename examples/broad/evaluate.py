@@ -29,8 +29,9 @@ from manifold_nets.data import TrajectoryDataset
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
 from .data import Trial, read_trials, split_trials, trials_to_dataset
-from .learning import estimate_quaternions
-from .metric import rmse
+from .learning import estimate_rotations
+from .metric import matrix_to_quat, rmse
+from .rate import decimate, upsample
 
 __all__ = ["pad_trials", "observer_quaternions", "evaluate_run"]
 
@@ -60,10 +61,26 @@ def pad_trials(trials: list[Trial]) -> tuple[TrajectoryDataset, list[int]]:
     return batch, [p.length + 1 for p in parts]
 
 
+def decimation(system, rate: float) -> int:
+    """The number of samples per observer step: ``system.dt`` in samples at ``rate`` Hz."""
+    k = round(system.dt * rate)
+    if k < 1 or abs(k - system.dt * rate) > 1e-3 * k:
+        raise ValueError(
+            f"the observer steps every {system.dt:.6g} s, which is not a whole number of samples "
+            f"at {rate:.6g} Hz; resample the recording to a rate it divides."
+        )
+    return k
+
+
 def observer_quaternions(observer, system, trials: list[Trial]) -> list[np.ndarray]:
-    """The observer's quaternions ``(T_i, 4)`` per trial, one per sample."""
+    """The observer's quaternions ``(T_i, 4)`` per trial, one per sample (between the
+    observer's steps, the gyroscope integrated from its last estimate: :mod:`.rate`)."""
     batch, lengths = pad_trials(trials)
-    q = estimate_quaternions(observer, system, batch)
+    k = decimation(system, trials[0].rate)
+    dt = 1.0 / trials[0].rate
+    R = estimate_rotations(observer, system, decimate(batch, k, dt))
+    R = upsample(R, batch.inputs.to(R), dt, k)
+    q = matrix_to_quat(R.numpy())
     return [q[i, :n] for i, n in enumerate(lengths)]
 
 

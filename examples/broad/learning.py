@@ -7,11 +7,11 @@ layout of :mod:`.data` and :mod:`.simulator`: ``y_{k+1} = (acc / G0, mag / M0)``
 extensions (:mod:`manifold_nets.inputs`), because at 285.7 Hz the paper's form would have the
 network re-learn integration to 1e-4 rad per step:
 
-* ``propagate = {R: [6, 9]}``: the kinematic prior ``R^- = R exp(dt gyr)``; the network outputs
+* ``propagate = {x: [6, 9]}``: the kinematic prior ``R^- = R exp(dt gyr)``; the network outputs
   the correction only (its head starts at zero, so the untrained observer is dead reckoning);
-* ``rotated = {R: [[0, 3], [3, 6]]}``: the core also reads ``R^- acc`` and ``R^- mag``, the
+* ``rotated = {x: [[0, 3], [3, 6]]}``: the core also reads ``R^- acc`` and ``R^- mag``, the
   readings in the world frame, where their error against "up" and "north" is linear;
-* ``update R: left``: the correction is a world-frame rotation, ``R = exp(v) R^-``.
+* ``updates = {x: left}`` (``x``: the one factor of a group that is not a product): the correction is a world-frame rotation, ``R = exp(v) R^-``.
 
 :func:`measured_start` starts an estimate from the first accelerometer and magnetometer sample
 (TRIAD); :class:`RandomMounting` is the augmentation "the sensor mounted differently": one
@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import math
 
-import numpy as np
 import torch
 
 from groups import SO3
@@ -33,7 +32,6 @@ from manifold_nets.config import ModelConfig
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.observer import ObserverState, ResidualObserver
 
-from .metric import matrix_to_quat
 from .simulator import BroadSimulator
 
 __all__ = [
@@ -41,7 +39,7 @@ __all__ = [
     "make_observer",
     "measured_start",
     "RandomMounting",
-    "estimate_quaternions",
+    "estimate_rotations",
 ]
 
 _SO3 = SO3()
@@ -52,9 +50,9 @@ def model_config(hidden_size: int = 64, num_layers: int = 2) -> ModelConfig:
     return ModelConfig(
         hidden_size=hidden_size,
         num_layers=num_layers,
-        updates={"R": "left"},
-        rotated={"R": [[0, 3], [3, 6]]},
-        propagate={"R": [6, 9]},
+        updates={"x": "left"},
+        rotated={"x": [[0, 3], [3, 6]]},
+        propagate={"x": [6, 9]},
     )
 
 
@@ -110,15 +108,15 @@ class RandomMounting:
 
 
 @torch.inference_mode()
-def estimate_quaternions(
+def estimate_rotations(
     observer: ResidualObserver, system: BroadSimulator, data: TrajectoryDataset
-) -> np.ndarray:
-    """The observer over whole sequences from their first sample: quaternions ``(N, T+1, 4)``.
+) -> torch.Tensor:
+    """The observer over whole sequences from their first sample: ``(N, T+1, 3, 3)`` float64.
 
-    Estimate 0 is TRIAD of the first measurement (sample 1's readings, 3.5 ms later), then one
-    estimate per sample."""
+    Estimate 0 is TRIAD of the first measurement (the readings one observer step later), then
+    one estimate per step."""
     observer.eval()
     x0 = measured_start(system)(data).to(device=observer.device, dtype=observer.state_dtype)
     state = ObserverState(x0, observer.core.initial_hidden(len(data), device=observer.device))
     est = observer(data.measurements, data.inputs, state=state)
-    return matrix_to_quat(est.cpu().numpy())
+    return est.cpu().to(torch.float64)

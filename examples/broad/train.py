@@ -38,7 +38,8 @@ from manifold_nets.data import TrajectoryDataset
 
 from .data import read_trials, split_trials, trials_to_dataset
 from .learning import RandomMounting, make_observer, measured_start, model_config
-from .simulator import BroadSimulator
+from .rate import decimate
+from .simulator import BROAD_DT, BroadSimulator
 
 log = logging.getLogger("broad.train")
 
@@ -51,11 +52,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--hidden-size", type=int, default=64)
     p.add_argument("--num-layers", type=int, default=2)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--decimation", type=int, default=8,
+                   help="the observer steps every k-th sample (285.7 / k Hz; rate.py)")
     p.add_argument("--pretrain-sequences", type=int, default=256, help="0: no pre-training")
-    p.add_argument("--pretrain-length", type=int, default=512)
+    p.add_argument("--pretrain-length", type=int, default=256, help="observer steps")
     p.add_argument("--pretrain-epochs", type=int, default=10)
-    p.add_argument("--window", type=int, default=1024, help="fine-tuning window (samples)")
-    p.add_argument("--stride", type=int, default=512)
+    p.add_argument("--window", type=int, default=256, help="fine-tuning window (observer steps)")
+    p.add_argument("--stride", type=int, default=128, help="between windows (observer steps)")
     p.add_argument("--finetune-epochs", type=int, default=10, help="0: no fine-tuning")
     p.add_argument("--mounting", type=float, default=3.141592653589793,
                    help="max angle (rad) of the random mounting; 0: no augmentation")
@@ -79,8 +82,9 @@ def settings(args, epochs: int) -> TrainSettings:
 def pretrain(args, system, model, out: Path) -> Path:
     """Stage 1 (simulated data); returns its best checkpoint."""
     gen = torch.Generator().manual_seed(args.seed)
-    n = args.pretrain_sequences
-    data = system.simulate(n, args.pretrain_length, 1.0, gen)
+    n, k = args.pretrain_sequences, args.decimation
+    full_rate = BroadSimulator()  # this IMU at 285.7 Hz, decimated like the recordings
+    data = decimate(full_rate.simulate(n, args.pretrain_length * k, 1.0, gen), k, BROAD_DT)
     n_val = max(1, n // 8)
     train, val = data[n_val:], data[:n_val]
     res = fit(
@@ -93,8 +97,14 @@ def pretrain(args, system, model, out: Path) -> Path:
 
 def finetune(args, system, model, out: Path, split: dict) -> Path:
     """Stage 2 (real windows of the training trials); returns its best checkpoint."""
-    train = trials_to_dataset(read_trials(args.data_dir, split["train"]), args.window, args.stride)
-    val = trials_to_dataset(read_trials(args.data_dir, split["val"]), args.window, args.window)
+    k = args.decimation
+    train = trials_to_dataset(
+        read_trials(args.data_dir, split["train"]), args.window * k, args.stride * k
+    )
+    val = trials_to_dataset(
+        read_trials(args.data_dir, split["val"]), args.window * k, args.window * k
+    )
+    train, val = decimate(train, k, BROAD_DT), decimate(val, k, BROAD_DT)
     log.info("finetune: %d training windows, %d validation windows of %d samples",
              len(train), len(val), args.window)
     augment = RandomMounting(args.mounting) if args.mounting > 0 else None
@@ -126,7 +136,7 @@ def run(args) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     if args.threads:
         torch.set_num_threads(args.threads)
-    system = BroadSimulator()
+    system = BroadSimulator(dt=args.decimation * BROAD_DT)  # the observer's step
     model = make_observer(system, model_config(args.hidden_size, args.num_layers), args.seed)
     config = _config(args, system)
     write_text_atomic(out / "config.yaml", yaml.safe_dump(config, sort_keys=False))
