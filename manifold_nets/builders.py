@@ -144,6 +144,7 @@ def build_observer(
         update=update,
         inputs=inputs,
         state_dtype=torch_dtype(model.state_dtype, "model.state_dtype"),
+        output_scale=float(getattr(model, "output_scale", 1.0)),
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 

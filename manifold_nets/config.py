@@ -97,6 +97,8 @@ class ModelConfig:
     #: factor's velocity; before the learned update ``x_f <- x_f · exp(system.dt · u_f)``, e.g.
     #: ``{R: [6, 9]}`` for a gyroscope (an extension; ``manifold_nets.inputs``).
     propagate: dict[str, list[int]] = field(default_factory=dict)
+    #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
+    output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
     state_dtype: str = "float64"
     #: dtype of the network's parameters.

@@ -11,6 +11,8 @@ network re-learn integration to 1e-4 rad per step:
   the correction only (its head starts at zero, so the untrained observer is dead reckoning);
 * ``rotated = {x: [[0, 3], [3, 6]]}``: the core also reads ``R^- acc`` and ``R^- mag``, the
   readings in the world frame, where their error against "up" and "north" is linear;
+* ``output_scale = 0.01``: corrections are ~1e-3 rad per step, so the head's output is scaled
+  down (the optimiser's steps on its weights stay in proportion);
 * ``updates = {x: left}`` (``x``: the one factor of a group that is not a product): the correction is a world-frame rotation, ``R = exp(v) R^-``.
 
 :func:`measured_start` starts an estimate from the first accelerometer and magnetometer sample
@@ -38,6 +40,7 @@ __all__ = [
     "model_config",
     "make_observer",
     "measured_start",
+    "near_truth_start",
     "RandomMounting",
     "estimate_rotations",
 ]
@@ -45,11 +48,14 @@ __all__ = [
 _SO3 = SO3()
 
 
-def model_config(hidden_size: int = 64, num_layers: int = 2) -> ModelConfig:
+def model_config(
+    hidden_size: int = 64, num_layers: int = 2, output_scale: float = 0.01
+) -> ModelConfig:
     """The BROAD observer's model config (see the module docstring)."""
     return ModelConfig(
         hidden_size=hidden_size,
         num_layers=num_layers,
+        output_scale=output_scale,
         updates={"x": "left"},
         rotated={"x": [[0, 3], [3, 6]]},
         propagate={"x": [6, 9]},
@@ -76,6 +82,30 @@ def measured_start(system: BroadSimulator):
 
     def start(batch: TrajectoryDataset) -> torch.Tensor:
         return system.state_from_measurement(batch.measurements[:, 0])
+
+    return start
+
+
+def near_truth_start(system: BroadSimulator, angle_std: float = 0.05):
+    """``batch -> (B, 3, 3)``: the true first state turned by a random rotation of
+    ``N(0, angle_std^2)`` per axis (radians), or TRIAD where the reference is missing.
+
+    For training windows cut from inside a trial: there the deployed observer has long
+    converged, to a few degrees, so a window that starts from TRIAD of one sample in motion (off
+    by up to ~20 deg through the linear acceleration) would teach it to converge rather than to
+    track. The perturbation is a function of the batch (seeded by its first states), so the
+    validation loss of a model is the same at every epoch."""
+    triad = measured_start(system)
+
+    def start(batch: TrajectoryDataset) -> torch.Tensor:
+        x0 = batch.states[:, 0]
+        seed = int(torch.sum(torch.abs(x0.detach().double())).item() * 1e6) % (2**31)
+        gen = torch.Generator().manual_seed(seed)
+        turn = angle_std * torch.randn(len(batch), 3, generator=gen, dtype=torch.float64)
+        out = x0 @ _SO3.exp(turn).to(x0)
+        if batch.mask is not None and not bool(batch.mask[:, 0].all()):
+            out = torch.where(batch.mask[:, 0, None, None], out, triad(batch).to(out))
+        return out
 
     return start
 

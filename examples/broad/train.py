@@ -7,10 +7,14 @@
 Stages (each optional, each a :func:`manifold_nets.fit` run in its own sub-folder):
 
 1. ``pretrain``: sequences of :class:`~.simulator.BroadSimulator` (this IMU's sensor models at
-   ``sigma = 1``), rollouts started from the first sample's TRIAD attitude;
+   ``sigma = 1``) at 285.7 Hz, decimated like the recordings (:mod:`.rate`);
 2. ``finetune``: windows cut from the training trials (validation: windows of the validation
-   trials), started the same way, from the pre-trained weights, with the random-mounting
-   augmentation (:class:`~.learning.RandomMounting`); masked where the reference is missing.
+   trials), from the pre-trained weights, with the random-mounting augmentation
+   (:class:`~.learning.RandomMounting`); masked where the reference is missing.
+
+Every training and validation window starts near its true first state
+(:func:`~.learning.near_truth_start`: a window from inside a trial is where the deployed
+observer has converged); whole trials are evaluated from TRIAD of their first sample.
 
 The run folder then holds ``config.yaml`` and ``checkpoints/best.pt`` (the last stage's best
 model: ``manifold_nets.load_observer(<run folder>)`` and ``broad.apply`` read it) and the
@@ -37,7 +41,7 @@ from manifold_nets.checkpoint import load_weights
 from manifold_nets.data import TrajectoryDataset
 
 from .data import read_trials, split_trials, trials_to_dataset
-from .learning import RandomMounting, make_observer, measured_start, model_config
+from .learning import RandomMounting, make_observer, model_config, near_truth_start
 from .rate import decimate
 from .simulator import BROAD_DT, BroadSimulator
 
@@ -51,6 +55,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--out", required=True, help="the run folder (created; must not hold a run)")
     p.add_argument("--hidden-size", type=int, default=64)
     p.add_argument("--num-layers", type=int, default=2)
+    p.add_argument("--output-scale", type=float, default=0.01)
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--decimation", type=int, default=8,
                    help="the observer steps every k-th sample (285.7 / k Hz; rate.py)")
@@ -64,6 +69,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="max angle (rad) of the random mounting; 0: no augmentation")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--lr", type=float, default=1e-3)
+    p.add_argument("--start-std", type=float, default=0.05,
+                   help="training windows start at the truth turned by N(0, std^2) rad per axis")
     p.add_argument("--max-batches", type=int, default=None)
     p.add_argument("--init-from", default=None, help="start from this checkpoint or run folder")
     p.add_argument("--eval-splits", default="val,test", help="splits evaluated on whole trials")
@@ -89,7 +96,8 @@ def pretrain(args, system, model, out: Path) -> Path:
     train, val = data[n_val:], data[:n_val]
     res = fit(
         model, train, val, settings(args, args.pretrain_epochs), out_dir=out / "pretrain",
-        seed=args.seed, start=measured_start(system), config=_config(args, system),
+        seed=args.seed, start=near_truth_start(system, args.start_std),
+        config=_config(args, system),
     )
     log.info("pretrain: best val loss %.4g at epoch %d", res.best_val_loss, res.best_epoch)
     return res.best_path
@@ -110,7 +118,7 @@ def finetune(args, system, model, out: Path, split: dict) -> Path:
     augment = RandomMounting(args.mounting) if args.mounting > 0 else None
     res = fit(
         model, train, val, settings(args, args.finetune_epochs), out_dir=out / "finetune",
-        seed=args.seed, start=measured_start(system), augment=augment,
+        seed=args.seed, start=near_truth_start(system, args.start_std), augment=augment,
         config=_config(args, system),
     )
     log.info("finetune: best val loss %.4g at epoch %d", res.best_val_loss, res.best_epoch)
@@ -120,7 +128,7 @@ def finetune(args, system, model, out: Path, split: dict) -> Path:
 def _config(args, system) -> dict:
     """The run config: what ``load_observer`` needs (``system``, ``model``) plus the command's
     arguments, plain data (fits :class:`manifold_nets.config.RunConfig`)."""
-    model = asdict(model_config(args.hidden_size, args.num_layers))
+    model = asdict(model_config(args.hidden_size, args.num_layers, args.output_scale))
     sys_cfg = {"_target_": f"{type(system).__module__}.{type(system).__qualname__}",
                **system.config()}
     return {"name": "broad", "seed": args.seed, "system": sys_cfg, "model": model}
@@ -137,7 +145,8 @@ def run(args) -> Path:
     if args.threads:
         torch.set_num_threads(args.threads)
     system = BroadSimulator(dt=args.decimation * BROAD_DT)  # the observer's step
-    model = make_observer(system, model_config(args.hidden_size, args.num_layers), args.seed)
+    model_cfg = model_config(args.hidden_size, args.num_layers, args.output_scale)
+    model = make_observer(system, model_cfg, args.seed)
     config = _config(args, system)
     write_text_atomic(out / "config.yaml", yaml.safe_dump(config, sort_keys=False))
     write_text_atomic(out / "command.json", json.dumps(vars(args), indent=1) + "\n")
