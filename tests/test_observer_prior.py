@@ -139,3 +139,24 @@ def test_the_train_command_builds_and_load_observer_rebuilds_the_prior(tmp_path)
     with torch.inference_mode():
         est = observer(data.measurements)
     system.group.check_member(est)
+
+
+def test_output_scale_multiplies_the_cores_output_and_is_checked():
+    y, u = data(n=2, t=3)
+    a = model(zero=False, inputs=ObserverInputs())
+    torch.manual_seed(0)
+    b = ResidualObserver(
+        G, 6, 3, hidden_size=8, num_layers=1, update={"R": "residual"}, output_scale=0.5
+    ).double()
+    b.load_state_dict(a.state_dict())
+    x0 = G.identity((2,), dtype=torch.float64)
+    step_a = a._step(x0, a.core.initial_hidden(2, dtype=torch.float64),
+                     a._context(torch.zeros(2, 9, dtype=torch.float64)))[0]
+    step_b = b._step(x0, b.core.initial_hidden(2, dtype=torch.float64),
+                     b._context(torch.zeros(2, 9, dtype=torch.float64)))[0]
+    # the R^3 factor starts at 0 and is residual: after one step it holds v itself
+    assert bool(step_a[:, 9:].abs().min() > 0)
+    assert torch.allclose(step_b[:, 9:], step_a[:, 9:] / 2)
+    assert b.signature()["output_scale"] == 0.5 and "output_scale" not in a.signature()
+    with pytest.raises(ValueError, match="output_scale must be a positive number, got 0"):
+        ResidualObserver(G, 6, 3, hidden_size=8, num_layers=1, output_scale=0)
