@@ -196,9 +196,8 @@ class BroadFilterModel(FilterModel):
         self.std = {"gyro": gyro, "bias_walk": bias_walk, "acc": acc, "mag": mag}
 
     def _cov(self, names, dtype, device):
-        std = torch.stack(
-            [torch.as_tensor(self.std[n], dtype=dtype, device=device) for n in names], -1
-        )
+        parts = [torch.as_tensor(self.std[n], dtype=dtype, device=device) for n in names]
+        std = torch.stack(torch.broadcast_tensors(*parts), -1)
         return torch.diag_embed(std.repeat_interleave(3, -1) ** 2)
 
     def drive(self, x, y, u, noise=None):
