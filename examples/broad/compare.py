@@ -2,14 +2,15 @@
 method, a markdown table per split, a figure per trial, and the command that writes them::
 
     python -m manifold_nets_examples.broad.compare --data-dir ../shared/broad/data_mat \\
-        --out results/broad [--split test] [--methods complementary,ekf,vqf,...] [--tuned FILE]
+        --out results/broad [--split test[,all]] [--methods complementary,ekf,vqf,...] \\
+        [--tuned FILE]
 
 Classical rows: ``complementary`` and ``ekf`` (:mod:`.filters`, gains tuned on the train split
 only, or read from ``--tuned``; the tuned gains are written to ``OUT/tuned.json``), ``vqf``,
 ``madgwick``, ``mahony`` (:mod:`.reference`, the ahrs rows at the BROAD authors' gains) and the
 authors' published numbers (``--published DIR``, default ``DATA_DIR/../published``). The learned
-observer's row enters through :func:`write_results`'s ``extra`` (``{method: [(T, 4) quaternions
-per trial]}``), the same way as the classical estimates.
+observer's row enters through :func:`write_results`'s ``extra`` (``{method: {trial: (T, 4)
+quaternions}}``), the same way as the classical estimates.
 
 Figures and tables derived from BROAD carry its attribution (CC-BY-4.0, Laidig et al. 2021).
 """
@@ -165,7 +166,8 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data-dir", default=None, help="folder of the BROAD .mat trials")
     p.add_argument("--out", required=True)
-    p.add_argument("--split", default="test", help="train, val, test, or all (the 23 trials)")
+    p.add_argument("--split", default="test",
+                   help="train, val, test or all (the 23 trials); several: test,all")
     p.add_argument("--methods", default=",".join(CLASSICAL))
     p.add_argument("--tuned", default=None, help="JSON of tuned gains (skips the grid search)")
     p.add_argument("--published", default=None, help="folder of the authors' results JSON")
@@ -175,9 +177,9 @@ def main(argv=None) -> None:
     data_dir = Path(a.data_dir or default_dir)
     out = Path(a.out)
     out.mkdir(parents=True, exist_ok=True)
-    chosen = {a.split: [n for v in splits.values() for n in v]} if a.split == "all" else {
-        a.split: splits[a.split]}  # fmt: skip
-    names = next(iter(chosen.values()))
+    every = [n for v in splits.values() for n in v]
+    chosen = {s: every if s == "all" else splits[s] for s in a.split.split(",")}
+    names = list(dict.fromkeys(n for v in chosen.values() for n in v))
     tuned = _tuned(read_trials(data_dir, splits["train"]), a.tuned, out)
     trials = {t.name: t for t in read_trials(data_dir, names)}
     methods = [m for m in a.methods.split(",") if m]
