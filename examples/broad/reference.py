@@ -77,7 +77,7 @@ def _ahrs(cls_name: str, to_enu: np.ndarray, trials, m_ref, **gains) -> list[np.
 
 
 def madgwick(trials: list[Trial], m_ref: np.ndarray, gain: float = 0.12) -> list[np.ndarray]:
-    """``ahrs.filters.Madgwick`` (MARG) with ``gain`` (beta; BROAD's tuned 0.12), ENU quaternions."""
+    """``ahrs.filters.Madgwick`` (MARG) with ``gain`` (beta; BROAD's 0.12): ENU quaternions."""
     return _ahrs("Madgwick", _NWU_TO_ENU, trials, m_ref, gain=gain)
 
 
