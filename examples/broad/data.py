@@ -195,7 +195,7 @@ def read_trial(path: str | Path) -> Trial:
 
 
 def read_trials(data_dir: str | Path, names) -> list[Trial]:
-    """The trials ``names`` (file stems, e.g. ``01_undisturbed_slow_rotation_A``) in ``data_dir``."""
+    """The trials ``names`` (file stems: ``01_undisturbed_slow_rotation_A``) in ``data_dir``."""
     data_dir = Path(data_dir)
     names = [str(n).removesuffix(".mat") for n in names]
     missing = [n for n in names if not (data_dir / f"{n}.mat").is_file()]

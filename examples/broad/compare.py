@@ -1,0 +1,200 @@
+"""The BROAD comparison: per-trial and mean RMSE (total, heading, inclination; degrees) of each
+method, a markdown table per split, a figure per trial, and the command that writes them::
+
+    python -m manifold_nets_examples.broad.compare --data-dir ../shared/broad/data_mat \\
+        --out results/broad [--split test[,all]] [--methods complementary,ekf,vqf,...] \\
+        [--tuned FILE]
+
+Classical rows: ``complementary`` and ``ekf`` (:mod:`.filters`, gains tuned on the train split
+only, or read from ``--tuned``; the tuned gains are written to ``OUT/tuned.json``), ``vqf``,
+``madgwick``, ``mahony`` (:mod:`.reference`, the ahrs rows at the BROAD authors' gains) and the
+authors' published numbers (``--published DIR``, default ``DATA_DIR/../published``). The learned
+observer's row enters through :func:`write_results`'s ``extra`` (``{method: {trial: (T, 4)
+quaternions}}``), the same way as the classical estimates.
+
+Figures and tables derived from BROAD carry its attribution (CC-BY-4.0, Laidig et al. 2021).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .data import Trial, read_trials, split_trials
+from .metric import errors, rmse
+
+__all__ = ["comparison", "markdown_table", "plot_trial", "classical_estimates", "write_results",
+           "main"]  # fmt: skip
+
+METRICS = ("total", "heading", "inclination")
+CLASSICAL = ("complementary", "ekf", "vqf", "madgwick", "mahony", "published")
+ATTRIBUTION = (
+    "Data: BROAD (D. Laidig, M. Caruso, A. Cereatti, T. Seel, Data 6(7):72, 2021, "
+    "https://doi.org/10.3390/data6070072), CC-BY-4.0."
+)
+
+
+def comparison(trials: list[Trial], estimates: dict, published: dict | None = None) -> list[dict]:
+    """Rows ``{"method", "trial", "total", "heading", "inclination"}`` (degrees).
+
+    ``estimates``: ``{method: [(T, 4) quaternions, one per trial]}``; ``published``: ``{method:
+    {trial: {metric: deg}}}`` (rows known only as numbers). Each method gets one row per trial
+    and a ``"mean"`` row (the mean over the trials it has, as the benchmark averages).
+    """
+    rows = []
+    for method, quats in estimates.items():
+        if len(quats) != len(trials):
+            raise ValueError(f"{method}: {len(quats)} estimates for {len(trials)} trials.")
+        per = {t.name: rmse(q, t.quat, t.movement) for t, q in zip(trials, quats)}
+        rows += _method_rows(method, per)
+    for method, per in (published or {}).items():
+        have = {t.name: per[t.name] for t in trials if t.name in per}
+        if have:
+            rows += _method_rows(method, have)
+    return rows
+
+
+def _method_rows(method: str, per: dict) -> list[dict]:
+    rows = [{"method": method, "trial": name, **vals} for name, vals in per.items()]
+    mean = {m: float(np.mean([v[m] for v in per.values()])) for m in METRICS}
+    return rows + [{"method": method, "trial": "mean", **mean}]
+
+
+def markdown_table(rows: list[dict], title: str) -> str:
+    """A markdown table: one line per method, the mean of each metric, then each trial's total."""
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    names = list(dict.fromkeys(r["trial"] for r in rows if r["trial"] != "mean"))
+    by = {(r["method"], r["trial"]): r for r in rows}
+    head = ["method", "total", "heading", "inclination", *[n[:2] for n in names]]
+    lines = [f"### {title}", "", "RMSE in degrees over the movement phases; mean over trials, "
+             "then each trial's total (columns: trial numbers).", "",
+             "| " + " | ".join(head) + " |", "|" + "---|" * len(head)]  # fmt: skip
+    for m in methods:
+        mean = by[(m, "mean")]
+        cells = [f"{mean[k]:.2f}" for k in METRICS]
+        cells += [f"{by[(m, n)]['total']:.2f}" if (m, n) in by else "-" for n in names]
+        lines.append("| " + " | ".join([m, *cells]) + " |")
+    return "\n".join(lines + ["", ATTRIBUTION, ""])
+
+
+def plot_trial(trial: Trial, estimates: dict, path: str | Path) -> None:
+    """The total error (deg) against time of each method in ``estimates`` ``{method: (T, 4)}``."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    time_s = np.arange(len(trial)) / trial.rate
+    fig, ax = plt.subplots(figsize=(10, 3.5))
+    for method, q in estimates.items():
+        err = np.degrees(errors(q, trial.quat)["total"])
+        ax.plot(time_s, err, lw=0.8, label=method)
+    ymax = ax.get_ylim()[1]
+    ax.fill_between(time_s, 0, ymax, where=~trial.movement, color="0.9", lw=0, label="rest")
+    ax.set(xlabel="time (s)", ylabel="total error (deg)", title=trial.name, ylim=(0, ymax))
+    ax.legend(loc="upper left", fontsize=7, ncol=4)
+    fig.text(0.01, 0.01, ATTRIBUTION, fontsize=5)
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def _tuned(train: list[Trial], tuned_path, out: Path) -> dict:
+    from . import filters
+
+    if tuned_path is not None:
+        return json.loads(Path(tuned_path).read_text())
+    m_ref = filters.magnetic_reference(train)
+    best_c, _ = filters.tune("complementary", train, m_ref)
+    best_e, _ = filters.tune("ekf", train, m_ref)
+    tuned = {"m_ref": m_ref.tolist(), "complementary": best_c, "ekf": best_e}
+    (out / "tuned.json").write_text(json.dumps(tuned, indent=2))
+    return tuned
+
+
+def classical_estimates(trials: list[Trial], tuned: dict, methods) -> tuple[dict, dict]:
+    """``({method: [(T, 4)]}, {method: seconds})`` of the classical filters in ``methods``."""
+    from . import filters, reference
+
+    m_ref = np.asarray(tuned["m_ref"])
+    runs = {
+        "complementary": lambda: filters.complementary(trials, m_ref, **tuned["complementary"]),
+        "ekf": lambda: filters.ekf(trials, m_ref, **tuned["ekf"]),
+        "vqf": lambda: reference.vqf_9d(trials),
+        "madgwick": lambda: reference.madgwick(trials, m_ref),
+        "mahony": lambda: reference.mahony(trials, m_ref),
+    }
+    est, secs = {}, {}
+    for m in methods:
+        if m in runs:
+            t0 = time.perf_counter()
+            est[m] = runs[m]()
+            secs[m] = time.perf_counter() - t0
+            print(f"{m}: {secs[m]:.1f} s for {len(trials)} trial(s)", flush=True)
+    return est, secs
+
+
+def write_results(out, splits: dict, trials: dict, estimates: dict, published=None, extra=None):
+    """Writes ``table.md``, ``metrics.json`` and ``figures/<trial>.png`` under ``out``.
+
+    ``splits`` ``{split: [names]}``; ``trials`` ``{name: Trial}``; ``estimates`` and ``extra``
+    (the learned observer's hook) ``{method: {name: (T, 4)}}``. Returns the rows per split.
+    """
+    out = Path(out)
+    (out / "figures").mkdir(parents=True, exist_ok=True)
+    every = {**estimates, **(extra or {})}
+    tables, metrics = [], {}
+    for split, names in splits.items():
+        ts = [trials[n] for n in names]
+        est = {m: [per[n] for n in names] for m, per in every.items()}
+        rows = comparison(ts, est, published)
+        metrics[split] = rows
+        tables.append(markdown_table(rows, f"BROAD, {split} split ({len(ts)} trials)"))
+        for t in ts:
+            plot_trial(t, {m: per[t.name] for m, per in every.items()}, out / "figures" /
+                       f"{t.name}.png")  # fmt: skip
+    (out / "table.md").write_text("\n".join(tables))
+    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    return metrics
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--data-dir", default=None, help="folder of the BROAD .mat trials")
+    p.add_argument("--out", required=True)
+    p.add_argument("--split", default="test",
+                   help="train, val, test or all (the 23 trials); several: test,all")
+    p.add_argument("--methods", default=",".join(CLASSICAL))
+    p.add_argument("--tuned", default=None, help="JSON of tuned gains (skips the grid search)")
+    p.add_argument("--published", default=None, help="folder of the authors' results JSON")
+    p.add_argument("--config", default=None, help="split file (default configs/broad/trials.yaml)")
+    a = p.parse_args(argv)
+    default_dir, splits = split_trials(a.config)
+    data_dir = Path(a.data_dir or default_dir)
+    out = Path(a.out)
+    out.mkdir(parents=True, exist_ok=True)
+    every = [n for v in splits.values() for n in v]
+    chosen = {s: every if s == "all" else splits[s] for s in a.split.split(",")}
+    names = list(dict.fromkeys(n for v in chosen.values() for n in v))
+    tuned = _tuned(read_trials(data_dir, splits["train"]), a.tuned, out)
+    trials = {t.name: t for t in read_trials(data_dir, names)}
+    methods = [m for m in a.methods.split(",") if m]
+    est, secs = classical_estimates(list(trials.values()), tuned, methods)
+    est = {m: dict(zip(trials, qs)) for m, qs in est.items()}
+    published = None
+    if "published" in methods:
+        from .reference import published as read_published
+
+        pub_dir = Path(a.published) if a.published else data_dir.parent / "published"
+        published = read_published(pub_dir, names)
+    write_results(out, chosen, trials, est, published)
+    (out / "seconds.json").write_text(json.dumps(secs, indent=1))
+    print((out / "table.md").read_text())
+
+
+if __name__ == "__main__":
+    main()
