@@ -152,3 +152,22 @@ def test_apply_refuses_a_bad_output_name_before_any_work(tiny_run, tmp_path):
     with pytest.raises(SystemExit, match=r"--out must end in \.npy or \.csv, got 'q\.txt'"):
         apply_cmd.main([str(tiny_run), str(FIXTURE), "--out", str(tmp_path / "q.txt")])
     assert not (tmp_path / "q.txt").exists()
+
+
+def test_the_compare_command_puts_the_learned_row_beside_the_filters(tiny_run, tmp_path):
+    from manifold_nets_examples.broad import compare
+
+    data, split = _tiny_split(tmp_path)
+    tuned = Path(__file__).parents[1] / "benchmarks" / "results" / "broad_tuned.json"
+    compare.main([
+        "--data-dir", str(data), "--config", str(split), "--out", str(tmp_path / "cmp"),
+        "--split", "test", "--methods", "vqf", "--tuned", str(tuned),
+        "--learned", f"learned={tiny_run}",
+    ])
+    table = (tmp_path / "cmp" / "table.md").read_text()
+    assert "| learned |" in table and "| vqf |" in table
+    assert (tmp_path / "cmp" / "figures" / "te.png").is_file()
+    with pytest.raises(SystemExit, match="--learned takes LABEL=RUN"):
+        compare.main(["--out", str(tmp_path / "x"), "--learned", str(tiny_run)])
+    with pytest.raises(SystemExit, match="label 'vqf' is taken"):
+        compare.main(["--out", str(tmp_path / "x"), "--learned", f"vqf={tiny_run}"])

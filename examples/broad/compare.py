@@ -3,14 +3,15 @@ method, a markdown table per split, a figure per trial, and the command that wri
 
     python -m manifold_nets_examples.broad.compare --data-dir ../shared/broad/data_mat \\
         --out results/broad [--split test[,all]] [--methods complementary,ekf,vqf,...] \\
-        [--tuned FILE]
+        [--tuned FILE] [--learned LABEL=RUN ...]
 
 Classical rows: ``complementary`` and ``ekf`` (:mod:`.filters`, gains tuned on the train split
 only, or read from ``--tuned``; the tuned gains are written to ``OUT/tuned.json``), ``vqf``,
 ``madgwick``, ``mahony`` (:mod:`.reference`, the ahrs rows at the BROAD authors' gains) and the
-authors' published numbers (``--published DIR``, default ``DATA_DIR/../published``). The learned
-observer's row enters through :func:`write_results`'s ``extra`` (``{method: {trial: (T, 4)
-quaternions}}``), the same way as the classical estimates.
+authors' published numbers (``--published DIR``, default ``DATA_DIR/../published``). Learned
+observers' rows: ``--learned LABEL=RUN`` (a run folder of :mod:`.train`; repeatable), estimated
+on whole trials like the filters; from Python, :func:`write_results`'s ``extra``
+(``{method: {trial: (T, 4) quaternions}}``).
 
 Figures and tables derived from BROAD carry its attribution (CC-BY-4.0, Laidig et al. 2021).
 """
@@ -162,6 +163,33 @@ def write_results(out, splits: dict, trials: dict, estimates: dict, published=No
     return metrics
 
 
+def _parse_learned(items: list[str]) -> dict[str, Path]:
+    """``{label: run folder}`` from ``LABEL=RUN`` arguments, checked before any work."""
+    out = {}
+    for item in items:
+        label, sep, run = item.partition("=")
+        if not sep or not label or not run:
+            raise SystemExit(f"--learned takes LABEL=RUN (e.g. learned=runs/broad), got {item!r}.")
+        if label in CLASSICAL or label in out:
+            raise SystemExit(f"--learned label {label!r} is taken; choose another.")
+        if not Path(run).exists():
+            raise SystemExit(f"--learned {label}={run}: no such run folder or checkpoint.")
+        out[label] = Path(run)
+    return out
+
+
+def learned_estimates(run, trials: list[Trial]) -> dict:
+    """``{trial name: (T, 4)}`` of the trained observer at ``run`` (a run folder of
+    :mod:`.train`, loaded without executing anything it names), whole trials from TRIAD."""
+    from manifold_nets import load_observer
+
+    from .evaluate import observer_quaternions
+
+    observer, system, _ = load_observer(run)
+    quats = observer_quaternions(observer, system, trials)
+    return {t.name: q for t, q in zip(trials, quats)}
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data-dir", default=None, help="folder of the BROAD .mat trials")
@@ -172,7 +200,11 @@ def main(argv=None) -> None:
     p.add_argument("--tuned", default=None, help="JSON of tuned gains (skips the grid search)")
     p.add_argument("--published", default=None, help="folder of the authors' results JSON")
     p.add_argument("--config", default=None, help="split file (default configs/broad/trials.yaml)")
+    p.add_argument("--learned", action="append", default=[], metavar="LABEL=RUN",
+                   help="a trained observer's row: its label and run folder (broad.train); "
+                        "repeatable")
     a = p.parse_args(argv)
+    learned = _parse_learned(a.learned)
     default_dir, splits = split_trials(a.config)
     data_dir = Path(a.data_dir or default_dir)
     out = Path(a.out)
@@ -191,6 +223,11 @@ def main(argv=None) -> None:
 
         pub_dir = Path(a.published) if a.published else data_dir.parent / "published"
         published = read_published(pub_dir, names)
+    for label, run in learned.items():
+        t0 = time.perf_counter()
+        est[label] = learned_estimates(run, list(trials.values()))
+        secs[label] = time.perf_counter() - t0
+        print(f"{label}: {secs[label]:.1f} s for {len(trials)} trial(s)", flush=True)
     write_results(out, chosen, trials, est, published)
     (out / "seconds.json").write_text(json.dumps(secs, indent=1))
     print((out / "table.md").read_text())
