@@ -139,6 +139,11 @@ class TrainSettings:
     lr_min: float = 0.0
     #: Clip the gradient's global norm to this value (``null``: no clipping, as the paper).
     grad_clip: Optional[float] = None
+    #: Truncated backpropagation through time: an optimizer step per this many steps of each
+    #: training rollout, the estimate and the hidden state carried (detached) from one piece to
+    #: the next, so sequences of thousands of steps train in bounded memory (``null``: BPTT
+    #: through the whole rollout, the paper's). Validation rolls out whole sequences.
+    tbptt: Optional[int] = None
     #: Stop an epoch after this many batches (``null``: the whole training split); for quick looks.
     max_batches: Optional[int] = None
     #: Sequences per forward pass in validation and evaluation.

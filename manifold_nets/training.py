@@ -70,6 +70,7 @@ __all__ = [
     "BatchTransform",
     "StartFn",
     "batch_loss",
+    "initial_state",
     "EpochCallback",
     "FitResult",
     "TrainingDiverged",
@@ -131,6 +132,7 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
             raise ValueError(f"{name} must be an integer >= 1, got {val!r}.")
     for name, none in (
         ("max_batches", "the whole training split"),
+        ("tbptt", "backpropagation through the whole rollout"),
         ("threads", "torch's default"),
     ):
         val = getattr(settings, name)
@@ -201,12 +203,31 @@ def batch_loss(
     """The embedding MSE ``L`` of ``model`` rolled out over ``batch`` (its steps whose true state
     is unknown, ``batch.mask`` False, left out), started at ``start(batch)`` or the identity."""
     inputs = batch.inputs if batch.inputs.shape[-1] else None
-    state = None
-    if start is not None:
-        x0 = start(batch).to(device=model.device, dtype=model.state_dtype)
-        state = ObserverState(x0, model.core.initial_hidden(len(batch), device=model.device))
-    est = model(batch.measurements, inputs, state=state)
+    est = model(batch.measurements, inputs, state=initial_state(model, batch, start))
     return embedding_mse(model.group, est, batch.states.to(est), mask=batch.mask)
+
+
+def initial_state(
+    model: ResidualObserver, batch: TrajectoryDataset, start: StartFn | None = None
+) -> ObserverState | None:
+    """Where ``batch``'s rollout starts: ``start(batch)`` and the core's initial hidden state, or
+    ``None`` (the observer's own start, the identity) without ``start``."""
+    if start is None:
+        return None
+    x0 = start(batch).to(device=model.device, dtype=model.state_dtype)
+    return ObserverState(x0, model.core.initial_hidden(len(batch), device=model.device))
+
+
+def _chunks(batch: TrajectoryDataset, length: int):
+    """``batch`` cut along time into pieces of ``length`` steps; piece ``i`` holds states
+    ``x_{iL} .. x_{(i+1)L}`` (the first is where the previous piece ended)."""
+    for a in range(0, batch.length, length):
+        b = min(a + length, batch.length)
+        mask = None if batch.mask is None else batch.mask[:, a : b + 1]
+        yield TrajectoryDataset(
+            batch.states[:, a : b + 1], batch.measurements[:, a:b], batch.inputs[:, a:b],
+            batch.meta, mask,
+        )
 
 
 @torch.no_grad()
@@ -469,21 +490,52 @@ class _Trainer:
                 batch = self.augment(batch, self.gen)
             if transform is not None:
                 batch.measurements = transform(batch.measurements, self.gen)
-            loss = batch_loss(model, batch, self.start_fn)
-            value = loss.item()
+            if s.tbptt is None:
+                value = self.optimise(batch_loss(model, batch, self.start_fn))
+            else:
+                value = self.truncated(batch)
             if not math.isfinite(value):
                 bar.close()
                 raise self.diverged("training loss", value, epoch, b)
-            self.opt.zero_grad(set_to_none=True)
-            loss.backward()
-            if s.grad_clip is not None:
-                torch.nn.utils.clip_grad_norm_(model.parameters(), s.grad_clip)
-            self.opt.step()
             running += value * len(idx)
             count += len(idx)
             bar.set_postfix(loss=f"{running / count:.4g}")
         bar.close()
         return running / max(count, 1)
+
+    def optimise(self, loss: torch.Tensor) -> float:
+        """One optimizer step on ``loss`` (skipped when it is not finite); returns its value."""
+        value = loss.item()
+        if not math.isfinite(value):
+            return value
+        self.opt.zero_grad(set_to_none=True)
+        loss.backward()
+        if self.settings.grad_clip is not None:
+            torch.nn.utils.clip_grad_norm_(self.model.parameters(), self.settings.grad_clip)
+        self.opt.step()
+        return value
+
+    def truncated(self, batch: TrajectoryDataset) -> float:
+        """Truncated BPTT: an optimizer step per ``tbptt`` steps of the rollout, the estimate and
+        the hidden state carried (detached) into the next piece; returns the mean loss."""
+        model = self.model
+        state = initial_state(model, batch, self.start_fn)
+        if state is None:
+            state = model.init_state(len(batch))
+        total, steps = 0.0, 0
+        for piece in _chunks(batch, self.settings.tbptt):
+            inputs = piece.inputs if piece.inputs.shape[-1] else None
+            est, state = model(piece.measurements, inputs, state=state, return_state=True)
+            loss = embedding_mse(model.group, est, piece.states.to(est), mask=piece.mask)
+            value = self.optimise(loss)
+            if not math.isfinite(value):
+                return value
+            total += value * piece.length
+            steps += piece.length
+            state = ObserverState(
+                state.estimate.detach(), tuple(h.detach() for h in state.hidden)
+            )
+        return total / steps
 
     def result(self) -> FitResult:
         last = self.last_path if self.last_path.is_file() else None

@@ -103,3 +103,50 @@ def test_fit_trains_through_masked_data_from_a_given_start(tmp_path):
     assert res.best_val_loss <= before
     # epoch 0's validation, then per epoch 3 training batches of 4 and one validation batch
     assert sizes == [4] + [4, 4, 4, 4] * 3
+
+
+def _fit(tmp_path, name, **settings):
+    torch.manual_seed(0)
+    model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
+    res = fit(
+        model, make(12, t=12, seed=1), make(4, t=12, seed=2),
+        TrainSettings(**{"epochs": 2, "batch_size": 4, "lr": 1e-2, "progress": False, **settings}),
+        out_dir=tmp_path / name,
+    )
+    return model, res
+
+
+def test_truncated_bptt_of_the_whole_length_is_plain_bptt(tmp_path):
+    full, res_full = _fit(tmp_path, "full")
+    one, res_one = _fit(tmp_path, "one", tbptt=12)
+    for a, b in zip(full.parameters(), one.parameters()):
+        assert torch.equal(a, b)
+    assert [r["train_loss"] for r in res_full.history] == [r["train_loss"] for r in res_one.history]
+
+
+def test_truncated_bptt_steps_per_piece_and_carries_the_state(tmp_path):
+    steps = []
+    torch.manual_seed(0)
+    model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
+    calls = []
+    model.register_forward_pre_hook(lambda m, args, kwargs: calls.append(kwargs.get("state")),
+                                    with_kwargs=True)
+    opt_step = torch.optim.AdamW.step
+
+    def counting(self, *a, **k):
+        steps.append(1)
+        return opt_step(self, *a, **k)
+
+    torch.optim.AdamW.step = counting
+    try:
+        fit(model, make(8, t=12, seed=1), make(4, t=12, seed=2),
+            TrainSettings(epochs=1, batch_size=4, lr=1e-2, progress=False, tbptt=5),
+            out_dir=tmp_path)
+    finally:
+        torch.optim.AdamW.step = opt_step
+    assert len(steps) == 2 * 3  # 2 batches x pieces of 5, 5, 2 steps
+    # training pieces after the first start where the previous one ended (a state is passed)
+    train_calls = [c for c in calls if c is not None]
+    assert len(train_calls) >= 6 and all(not c.estimate.requires_grad for c in train_calls)
+    with pytest.raises(ValueError, match=r"tbptt must be an integer >= 1 or None"):
+        fit(model, make(8), make(4), TrainSettings(tbptt=0, progress=False), out_dir=tmp_path)

@@ -72,6 +72,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--start-std", type=float, default=0.05,
                    help="training windows start at the truth turned by N(0, std^2) rad per axis")
     p.add_argument("--max-batches", type=int, default=None)
+    p.add_argument("--tbptt", type=int, default=None,
+                   help="truncated BPTT: an optimizer step per this many observer steps")
     p.add_argument("--init-from", default=None, help="start from this checkpoint or run folder")
     p.add_argument("--eval-splits", default="val,test", help="splits evaluated on whole trials")
     p.add_argument("--threads", type=int, default=None)
@@ -82,7 +84,7 @@ def settings(args, epochs: int) -> TrainSettings:
     return TrainSettings(
         epochs=epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=0.01,
         schedule="cosine", lr_min=args.lr / 20, grad_clip=1.0, max_batches=args.max_batches,
-        eval_batch_size=64, threads=args.threads,
+        eval_batch_size=64, threads=args.threads, tbptt=args.tbptt,
     )
 
 
