@@ -470,3 +470,17 @@ def test_a_typoed_eval_checkpoint_is_refused_before_the_run_folder_gets_a_file(t
     with pytest.raises(CheckpointError, match=r"^no best\.pt in the run folder"):
         run(_compose(*_tiny(tmp_path / "data", f"eval.checkpoint={tmp_path}")), tmp_path / "ev")
     assert not (tmp_path / "ev").exists()
+
+
+@pytest.mark.parametrize("key, name", [("train.init_from", "best.pt"), ("train.resume", "last.pt")])
+def test_a_typoed_init_from_or_resume_is_refused_before_the_run_folder_gets_a_file(
+    tmp_path, key, name
+):
+    """Like eval.checkpoint: the checkpoint to start from is read before config.yaml is written."""
+    typo = tmp_path / "runs" / "nowhere"
+    with pytest.raises(CheckpointError, match=r"no checkpoint at .*nowhere; train first or fix"):
+        run(_compose(*_tiny(tmp_path / "data", f"{key}={typo}")), tmp_path / "r1")
+    assert not (tmp_path / "r1").exists()
+    with pytest.raises(CheckpointError, match=rf"^no {name.replace('.', '[.]')} in the run folder"):
+        run(_compose(*_tiny(tmp_path / "data", f"{key}={tmp_path}")), tmp_path / "r2")
+    assert not (tmp_path / "r2").exists()

@@ -218,11 +218,19 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
 
 
 def _check_eval_checkpoint(cfg: DictConfig) -> None:
-    """Reads ``eval.checkpoint`` once before the run folder gets anything, so a typo'd path or
-    an unreadable file is refused (``CheckpointError`` naming the file) and leaves no half-made
-    run folder; whether it fits the model is checked when it is loaded into the observer."""
-    if cfg.eval.checkpoint and cfg.method.name in LEARNED_METHODS and not cfg.method.target:
+    """Reads ``eval.checkpoint``, ``train.init_from`` and ``train.resume`` once before the run
+    folder gets anything, so a typo'd path or an unreadable file is refused
+    (``CheckpointError`` naming the file) and leaves no half-made run folder; whether it fits
+    the model is checked when it is loaded into the observer."""
+    if cfg.method.name not in LEARNED_METHODS or cfg.method.target:
+        return
+    if cfg.eval.checkpoint:
         load_checkpoint(resolve_checkpoint(absolute(cfg.eval.checkpoint), name="best.pt"))
+    elif cfg.method.name == "learned":
+        if cfg.train.init_from:
+            load_checkpoint(resolve_checkpoint(absolute(cfg.train.init_from), name="best.pt"))
+        if cfg.train.resume:
+            load_checkpoint(resolve_checkpoint(absolute(cfg.train.resume), name="last.pt"))
 
 
 def _train_and_evaluate(
