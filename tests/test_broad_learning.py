@@ -171,3 +171,15 @@ def test_the_compare_command_puts_the_learned_row_beside_the_filters(tiny_run, t
         compare.main(["--out", str(tmp_path / "x"), "--learned", str(tiny_run)])
     with pytest.raises(SystemExit, match="label 'vqf' is taken"):
         compare.main(["--out", str(tmp_path / "x"), "--learned", f"vqf={tiny_run}"])
+
+
+def test_the_shipped_observer_loads_and_tracks_the_excerpt(trial, tmp_path):
+    """examples/broad/pretrained (docs/real_data.md): loads without executing anything, and on
+    the excerpt (from a training trial, started mid-motion from TRIAD) stays within degrees."""
+    shipped = Path(__file__).parents[1] / "examples" / "broad" / "pretrained"
+    res = apply_cmd.apply_observer(shipped, FIXTURE, tmp_path / "q.npy")
+    assert res["quaternions"].shape == (2000, 4)
+    assert res["rmse"]["total"] < 10.0, res["rmse"]
+    observer, system, _ = load_observer(shipped)
+    assert observer.signature()["core"]["hidden_size"] == 64
+    assert (shipped / "checkpoints" / "best.pt").stat().st_size < 5 * 2**20
