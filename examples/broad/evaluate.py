@@ -25,7 +25,7 @@ import torch
 
 from manifold_nets import load_observer
 from manifold_nets.atomic import write_text_atomic
-from manifold_nets.data import TrajectoryDataset
+from manifold_nets.data import TrajectoryDataset, collate_trajectories
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
 from .data import Trial, read_trials, split_trials, trials_to_dataset
@@ -42,7 +42,6 @@ def pad_trials(trials: list[Trial]) -> tuple[TrajectoryDataset, list[int]]:
     """Whole trials as one batch, padded to the longest (last reading repeated, reference masked);
     returns the batch and each trial's number of samples."""
     parts = [trials_to_dataset([t]) for t in trials]
-    parts = [p[0] if isinstance(p, list) else p for p in parts]
     steps = max(p.length for p in parts)
     padded = []
     for p in parts:
@@ -50,14 +49,10 @@ def pad_trials(trials: list[Trial]) -> tuple[TrajectoryDataset, list[int]]:
         y = torch.cat((p.measurements, p.measurements[:, -1:].expand(1, extra, -1)), 1)
         u = torch.cat((p.inputs, p.inputs[:, -1:].expand(1, extra, -1)), 1)
         s = torch.cat((p.states, p.states[:, -1:].expand(1, extra, 3, 3)), 1)
-        mask = p.mask if p.mask is not None else torch.ones(1, p.length + 1, dtype=torch.bool)
-        mask = torch.cat((mask, torch.zeros(1, extra, dtype=torch.bool)), 1)
+        mask = torch.cat((p.mask, torch.zeros(1, extra, dtype=torch.bool)), 1)
         padded.append(TrajectoryDataset(s, y, u, p.meta, mask))
-    batch = TrajectoryDataset(
-        torch.cat([p.states for p in padded]), torch.cat([p.measurements for p in padded]),
-        torch.cat([p.inputs for p in padded]), {"trials": [t.name for t in trials]},
-        torch.cat([p.mask for p in padded]),
-    )
+    batch = collate_trajectories(padded)
+    batch.meta = {"trials": [t.name for t in trials]}
     return batch, [p.length + 1 for p in parts]
 
 

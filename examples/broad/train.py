@@ -88,7 +88,7 @@ def settings(args, epochs: int) -> TrainSettings:
     )
 
 
-def pretrain(args, system, model, out: Path) -> Path:
+def pretrain(args, system, model, out: Path, config: dict) -> Path:
     """Stage 1 (simulated data); returns its best checkpoint."""
     gen = torch.Generator().manual_seed(args.seed)
     n, k = args.pretrain_sequences, args.decimation
@@ -98,14 +98,13 @@ def pretrain(args, system, model, out: Path) -> Path:
     train, val = data[n_val:], data[:n_val]
     res = fit(
         model, train, val, settings(args, args.pretrain_epochs), out_dir=out / "pretrain",
-        seed=args.seed, start=near_truth_start(system, args.start_std),
-        config=_config(args, system),
+        seed=args.seed, start=near_truth_start(system, args.start_std), config=config,
     )
     log.info("pretrain: best val loss %.4g at epoch %d", res.best_val_loss, res.best_epoch)
     return res.best_path
 
 
-def finetune(args, system, model, out: Path, split: dict) -> Path:
+def finetune(args, system, model, out: Path, split: dict, config: dict) -> Path:
     """Stage 2 (real windows of the training trials); returns its best checkpoint."""
     k = args.decimation
     train = trials_to_dataset(
@@ -121,16 +120,16 @@ def finetune(args, system, model, out: Path, split: dict) -> Path:
     res = fit(
         model, train, val, settings(args, args.finetune_epochs), out_dir=out / "finetune",
         seed=args.seed, start=near_truth_start(system, args.start_std), augment=augment,
-        config=_config(args, system),
+        config=config,
     )
     log.info("finetune: best val loss %.4g at epoch %d", res.best_val_loss, res.best_epoch)
     return res.best_path
 
 
-def _config(args, system) -> dict:
+def _config(args, system, model_cfg) -> dict:
     """The run config: what ``load_observer`` needs (``system``, ``model``) plus the command's
     arguments, plain data (fits :class:`manifold_nets.config.RunConfig`)."""
-    model = asdict(model_config(args.hidden_size, args.num_layers, args.output_scale))
+    model = asdict(model_cfg)
     sys_cfg = {"_target_": f"{type(system).__module__}.{type(system).__qualname__}",
                **system.config()}
     return {"name": "broad", "seed": args.seed, "system": sys_cfg, "model": model}
@@ -149,17 +148,17 @@ def run(args) -> Path:
     system = BroadSimulator(dt=args.decimation * BROAD_DT)  # the observer's step
     model_cfg = model_config(args.hidden_size, args.num_layers, args.output_scale)
     model = make_observer(system, model_cfg, args.seed)
-    config = _config(args, system)
+    config = _config(args, system, model_cfg)
     write_text_atomic(out / "config.yaml", yaml.safe_dump(config, sort_keys=False))
     write_text_atomic(out / "command.json", json.dumps(vars(args), indent=1) + "\n")
     best = None
     if args.init_from:
         best, _ = load_weights(model, args.init_from)
     if args.pretrain_sequences > 0 and args.pretrain_epochs > 0:
-        best = pretrain(args, system, model, out)
+        best = pretrain(args, system, model, out, config)
         load_weights(model, best)
     if args.finetune_epochs > 0:
-        best = finetune(args, system, model, out, split)
+        best = finetune(args, system, model, out, split, config)
         load_weights(model, best)
     if best is None:
         raise SystemExit("nothing to train: give --pretrain-epochs, --finetune-epochs or --init-from")

@@ -197,7 +197,7 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     system = build_system(cfg.system)
     if cfg.method.name not in LEARNED_METHODS or cfg.method.target:
         build_estimator_factory(system, cfg.method)  # an unknown method: refused now
-    _check_eval_checkpoint(cfg)
+    _check_checkpoints(cfg)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = OmegaConf.to_container(cfg, resolve=True)
@@ -217,7 +217,7 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     return metrics
 
 
-def _check_eval_checkpoint(cfg: DictConfig) -> None:
+def _check_checkpoints(cfg: DictConfig) -> None:
     """Reads ``eval.checkpoint``, ``train.init_from`` and ``train.resume`` once before the run
     folder gets anything, so a typo'd path or an unreadable file is refused
     (``CheckpointError`` naming the file) and leaves no half-made run folder; whether it fits
