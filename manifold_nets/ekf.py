@@ -18,7 +18,7 @@ One filter step (``k -> k+1``), with ``xhat^- = step(xhat, drive(xhat, y, u, 0))
 
     F = d/de rminus(step(xhat·exp(e), drive(xhat·exp(e), y, u, 0)), xhat^-)      (n, n)
     G = d/dq rminus(step(xhat, drive(xhat, y, u, q)), xhat^-)                   (n, q)
-    P^- = F P F^T + G Q G^T
+    P^- = F P F^T + G Q G^T (+ Q_e, noise entering the error state directly: a bias random walk)
     zhat = measure(xhat^-, w, 0),  nu = residual(observation(y), zhat)
     H = d/de residual(measure(xhat^-·exp(e), w, 0), zhat)                       (d, n)
     M = d/dr residual(measure(xhat^-, w, r), zhat)                              (d, r)
@@ -149,6 +149,12 @@ class FilterModel(abc.ABC):
         self, batch: int, dtype: torch.dtype, device=None
     ) -> tuple[torch.Tensor, torch.Tensor]:
         """The prior ``(xhat_0 (batch, *element_shape), P_0 (batch, n, n))``."""
+
+    def state_noise_cov(self, dtype: torch.dtype, device=None) -> torch.Tensor | None:
+        """``Q_e`` ``(n, n)`` (or ``(B, n, n)``), noise added to the error state over a step
+        besides ``G Q G^T``: the random walk of a bias the model lets drift. Default ``None``:
+        none (a constant bias)."""
+        return None
 
     # optional analytic Jacobians (jacobians="analytic")
 
@@ -444,6 +450,9 @@ class ErrorStateEKF:
             F, G = self.process_jacobians(x, y, u, x_pred)
         Q = m.process_noise_cov(x.dtype, x.device)
         P_pred = F @ P @ F.transpose(-1, -2) + G @ Q @ G.transpose(-1, -2)
+        Qe = m.state_noise_cov(x.dtype, x.device)
+        if Qe is not None:
+            P_pred = P_pred + Qe
         return EKFState(x_pred, _symmetric(P_pred)), w
 
     def update(

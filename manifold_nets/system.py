@@ -270,13 +270,22 @@ class System(abc.ABC):
                 f"{type(self).__name__}.measure returned {tuple(measurements.shape)}; expected "
                 f"{(n, t, self.measurement_dim)} (N, T, measurement_dim)."
             )
+        return self.trajectory_dataset(states, measurements, drive, sigma)
+
+    def trajectory_dataset(
+        self, states: torch.Tensor, measurements: torch.Tensor, drive: torch.Tensor, sigma: float
+    ) -> TrajectoryDataset:
+        """The dataset :meth:`simulate` returns, from its arrays: states ``(N, T+1, ...)``,
+        measurements ``(N, T, l)``, drives ``(N, T, drive_dim)`` (the inputs are
+        ``inputs(drive)``) and the meta every simulated dataset carries. For a subclass that
+        writes its own ``simulate`` (draws the data another way) and returns what the base does."""
         meta = {
             "system": self.name,
             "system_target": f"{type(self).__module__}.{type(self).__qualname__}",
             "system_config": self.config(),
             "group": repr(self.group),
             "dt": float(self.dt),
-            "sigma": sigma,
+            "sigma": float(sigma),
             "measurement_dim": self.measurement_dim,
             "input_dim": self.input_dim,
         }

@@ -16,7 +16,7 @@ import torch
 from manifold_nets_examples.attitude import Attitude
 from manifold_nets_examples.broad.simulator import BroadSimulator
 from manifold_nets_examples.planar import Planar
-from manifold_nets_examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body import MismatchedRigidBody, RigidBody
 from manifold_nets.system import System
 from manifold_nets.testing import CHECKS, check_rollout_matches_step, check_system
 
@@ -27,6 +27,7 @@ SHIPPED = {
     "rigid_body-so3_r3": lambda: RigidBody(),
     "rigid_body-se3": lambda: RigidBody(pose_group="se3"),
     "rigid_body-rk45": lambda: RigidBody(integrator="rk45"),
+    "rigid_body-mismatch-off": lambda: MismatchedRigidBody(),
     "attitude": lambda: Attitude(),
     "attitude-scaled_noise": lambda: Attitude(magnetic_noise=0.5, gyro_noise=2.0),
     "broad_sim": lambda: BroadSimulator(),

@@ -63,6 +63,7 @@ __all__ = [
     "initialize_from_measurements",
     "jl_times_v_derivative",
     "tune_complementary_gains",
+    "tune_ekf_noise",
 ]
 
 _SO3 = SO3()
@@ -79,6 +80,27 @@ def _check_system(system, who: str) -> None:
             f"this RigidBody has pose_group={system.pose_group!r}. Filter the so3_r3 system (the "
             "same data) and compare through System.metrics."
         )
+
+
+def _noise_param(name: str, value, zero_ok: bool = False):
+    """A noise level of the EKF's model: a float (or a ``(B,)`` tensor, one per sequence)."""
+    if isinstance(value, torch.Tensor):
+        ok = bool(torch.isfinite(value).all()) and bool((value >= 0 if zero_ok else value > 0).all())
+        if not ok or value.dim() != 1:
+            raise ValueError(f"{name} must be finite and {'>= 0' if zero_ok else '> 0'} ((B,) tensor), got {value!r}.")
+        return value
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or value < 0 or (value == 0 and not zero_ok):
+        raise ValueError(f"{name} must be a finite number {'>= 0' if zero_ok else '> 0'}, got {value!r}.")
+    return float(value)
+
+
+def _scaled_eye(std, n: int, dtype, device) -> torch.Tensor:
+    """``std^2 I_n`` ``(n, n)``, or ``(B, n, n)`` for a ``(B,)`` tensor of ``std``."""
+    eye = torch.eye(n, dtype=dtype, device=device)
+    if isinstance(std, torch.Tensor):
+        return std.to(dtype=dtype, device=device).square()[:, None, None] * eye
+    return std**2 * eye
 
 
 # ------------------------------------------------------------------ d(J_l(phi) v)/dphi
@@ -149,7 +171,13 @@ class RigidBodyFilterModel(BiasedReadingsFilterModel):
     process_noise_dim = 6  # (w3, w4): the gyro and velocity readings
 
     def __init__(
-        self, system: RigidBody, sigma: float, rotation_std: float = math.pi / math.sqrt(3)
+        self,
+        system: RigidBody,
+        sigma: float,
+        rotation_std: float = math.pi / math.sqrt(3),
+        reading_std: float | torch.Tensor | None = None,
+        pose_std: float | torch.Tensor | None = None,
+        bias_walk: float | torch.Tensor = 0.0,
     ):
         _check_system(system, "RigidBodyFilterModel")
         super().__init__(system, sigma)
@@ -157,6 +185,9 @@ class RigidBodyFilterModel(BiasedReadingsFilterModel):
             raise ValueError(f"rotation_std must be > 0, got {rotation_std!r}.")
         self.rotation_std = float(rotation_std)
         self.dt = system.dt
+        self.reading_std = _noise_param("reading_std", self.sigma if reading_std is None else reading_std)
+        self.pose_std = _noise_param("pose_std", self.sigma if pose_std is None else pose_std)
+        self.bias_walk = _noise_param("bias_walk", bias_walk, zero_ok=True)
 
     # model
 
@@ -164,10 +195,20 @@ class RigidBodyFilterModel(BiasedReadingsFilterModel):
         return x[..., 12:18]
 
     def process_noise_cov(self, dtype, device=None):
-        return self.sigma**2 * torch.eye(6, dtype=dtype, device=device)
+        """``reading_std^2 I_6`` (default ``sigma``): the velocity readings' noise."""
+        return _scaled_eye(self.reading_std, 6, dtype, device)
 
     def measurement_noise_cov(self, dtype, device=None):
-        return self.sigma**2 * torch.eye(6, dtype=dtype, device=device)
+        """``pose_std^2 I_6`` (default ``sigma``): the measured pose's noise."""
+        return _scaled_eye(self.pose_std, 6, dtype, device)
+
+    def state_noise_cov(self, dtype, device=None):
+        """``bias_walk^2 dt`` on the bias block per step (a random walk); ``None`` when zero."""
+        if not isinstance(self.bias_walk, torch.Tensor) and self.bias_walk == 0.0:
+            return None
+        mask = torch.zeros(12, dtype=dtype, device=device)
+        mask[6:] = 1.0
+        return _scaled_eye(self.bias_walk, 12, dtype, device) * mask * self.dt
 
     def initial_state(self, batch, dtype, device=None):
         x0 = self.group.identity((batch,), dtype=dtype, device=device)
@@ -287,7 +328,14 @@ class RigidBodyEKF:
     name = "ekf"
 
     def __init__(
-        self, system: RigidBody, sigma: float, jacobians: str = "analytic", init_steps: int = 5
+        self,
+        system: RigidBody,
+        sigma: float,
+        jacobians: str = "analytic",
+        init_steps: int = 5,
+        reading_std: float | torch.Tensor | None = None,
+        pose_std: float | torch.Tensor | None = None,
+        bias_walk: float | torch.Tensor = 0.0,
     ):
         from manifold_nets.ekf import ErrorStateEKF
 
@@ -300,15 +348,33 @@ class RigidBodyEKF:
             raise ValueError(f"init_steps must be 0 or an integer >= 2, got {init_steps!r}.")
         self.system = system
         self.group = system.group
-        self.model = RigidBodyFilterModel(system, sigma)
+        self.model = RigidBodyFilterModel(
+            system, sigma, reading_std=reading_std, pose_std=pose_std, bias_walk=bias_walk
+        )
         self.ekf = ErrorStateEKF(self.model, jacobians=jacobians)
         self.init_steps = init_steps
         self.seconds = 0.0  # wall time of the last estimate's filter loop
 
+    @classmethod
+    def tuned(cls, system: RigidBody, sigma: float, **search) -> RigidBodyEKF:
+        """The EKF with its noise levels chosen by :func:`tune_ekf_noise` on data of ``system``
+        itself (whatever its true noise and errors are) at ``sigma``; what ``method=ekf_tuned``
+        runs. The model stays nominal: only ``reading_std``, ``pose_std`` and ``bias_walk`` move."""
+        sigma = check_noise_level("RigidBodyEKF.tuned", sigma)
+        noise, _ = tune_ekf_noise(system, sigma, **search)
+        log.info("EKF, sigma %g: tuned noise levels %s", sigma, noise)
+        return cls(system, sigma, **noise)
+
     def __repr__(self) -> str:
+        m = self.model
+        tuned, params = "", (m.reading_std, m.pose_std, m.bias_walk)
+        if not any(isinstance(v, torch.Tensor) for v in params) and params != (
+            m.sigma, m.sigma, 0.0
+        ):
+            tuned = f", reading_std={m.reading_std:g}, pose_std={m.pose_std:g}, bias_walk={m.bias_walk:g}"
         return (
-            f"RigidBodyEKF(sigma={self.model.sigma:g}, jacobians={self.ekf.jacobians!r}, "
-            f"init_steps={self.init_steps})"
+            f"RigidBodyEKF(sigma={m.sigma:g}, jacobians={self.ekf.jacobians!r}, "
+            f"init_steps={self.init_steps}{tuned})"
         )
 
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
@@ -326,6 +392,54 @@ class RigidBodyEKF:
         head = self.system.state_from_measurement(y[:, : m - 1])
         x0 = self.group.identity((len(y), 1), dtype=y.dtype, device=y.device)
         return torch.cat((x0, head, res.estimates), dim=1)
+
+
+#: The EKF's noise levels searched by :func:`tune_ekf_noise`: the readings' and the pose's noise
+#: as multiples of sigma, the biases' random walk in units/s per sqrt(s).
+_EKF_GRID = {
+    "reading_scale": (0.5, 1.0, 2.0, 4.0, 8.0),
+    "pose_scale": (0.5, 1.0, 2.0, 4.0),
+    "bias_walk": (0.0, 0.01, 0.03, 0.1, 0.3),
+}
+
+
+def tune_ekf_noise(
+    system: RigidBody,
+    sigma: float,
+    grid: dict | None = None,
+    num_sequences: int = 16,
+    length: int = 300,
+    seed: int = 10_000,
+    skip: int = 10,
+) -> tuple[dict, dict]:
+    """Grid search of the EKF's noise levels on a validation set simulated from ``system``.
+
+    The model (dynamics, measurement equations) stays the nominal rigid body's; only the noise
+    it assumes moves: ``reading_std = reading_scale * sigma``, ``pose_std = pose_scale *
+    sigma`` and the biases' random walk ``bias_walk``. Simulates ``num_sequences x length`` at
+    ``sigma`` from ``seed`` (apart from the inference sets' seeds) and picks the point of the
+    grid with the smallest mean ``||Rhat - R||_F + ||phat - p||`` over steps ``>= skip``; the
+    whole grid runs as one batch. Returns ``({reading_std, pose_std, bias_walk}, {point: score})``.
+    """
+    grid = {**_EKF_GRID, **(grid or {})}
+    data = system.simulate(num_sequences, length, sigma, torch.Generator().manual_seed(seed))
+    combos = list(itertools.product(grid["reading_scale"], grid["pose_scale"], grid["bias_walk"]))
+    reps = len(combos)
+    column = lambda i: torch.tensor([c[i] for c in combos], dtype=torch.float64).repeat_interleave(
+        num_sequences
+    )
+    ekf = RigidBodyEKF(
+        system, sigma, reading_std=column(0) * sigma, pose_std=column(1) * sigma,
+        bias_walk=column(2),
+    )
+    ekf.ekf.progress = False
+    many = _repeat(data, reps)
+    err = system.metrics(ekf.estimate(many), many)
+    score = (err["R"] + err["p"])[:, skip:].mean(1).reshape(reps, num_sequences).mean(1)
+    score = torch.nan_to_num(score, nan=math.inf)
+    best = combos[int(score.argmin())]
+    choice = {"reading_std": best[0] * sigma, "pose_std": best[1] * sigma, "bias_walk": best[2]}
+    return choice, {c: float(v) for c, v in zip(combos, score)}
 
 
 # ------------------------------------------------------------------ complementary filter

@@ -370,14 +370,20 @@ class RigidBody(System):
 
     def estimators(self) -> dict:
         """``raw``, ``dead_reckoning`` and, on the paper's group (``pose_group='so3_r3'``), ``ekf``
-        (:class:`~.filters.RigidBodyEKF`, the true model and noise level) and ``complementary``
+        (:class:`~.filters.RigidBodyEKF`, the nominal model and noise level ``sigma``),
+        ``ekf_tuned`` (the same model with its noise levels searched on data of this system,
+        :meth:`~.filters.RigidBodyEKF.tuned`) and ``complementary``
         (:meth:`~.filters.ComplementaryFilter.tuned`, gains searched per sigma), for
         ``method=<name>``."""
         out = super().estimators()
         if self.pose_group == "so3_r3":
             from .filters import ComplementaryFilter, RigidBodyEKF
 
-            out.update(ekf=RigidBodyEKF, complementary=ComplementaryFilter.tuned)
+            out.update(
+                ekf=RigidBodyEKF,
+                ekf_tuned=RigidBodyEKF.tuned,
+                complementary=ComplementaryFilter.tuned,
+            )
         return out
 
     def measurement_errors(self, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
