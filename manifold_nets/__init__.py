@@ -8,7 +8,8 @@ user needs, by where they sit in the data flow
 system                 :class:`System` (subclass it), :func:`manifold_nets.testing.check_system`
 data                   :class:`TrajectoryDataset`, :func:`load_dataset`, :func:`save_dataset`,
                        :func:`make_dataset`, :func:`load_or_generate`,
-                       :func:`collate_trajectories` (for ``torch.utils.data.DataLoader``)
+                       :func:`collate_trajectories` (for ``torch.utils.data.DataLoader``),
+                       :class:`SimulatedStream` (fresh sequences every epoch, for :func:`fit`)
 observer               :class:`ResidualObserver`, :class:`ObserverInputs`, :class:`RecurrentCore`,
                        :class:`GRUCore`
 training               :func:`fit`, :class:`TrainSettings`, :class:`MeasurementNoise`,
@@ -45,6 +46,7 @@ from .inputs import ObserverInputs
 from .loading import load_observer
 from .losses import embedding_mse, factor_errors
 from .observer import ResidualObserver
+from .streaming import SimulatedStream
 from .system import System
 from .training import fit
 
@@ -59,6 +61,7 @@ __all__ = [
     "save_dataset",
     "make_dataset",
     "load_or_generate",
+    "SimulatedStream",
     "ResidualObserver",
     "ObserverInputs",
     "RecurrentCore",

@@ -149,6 +149,11 @@ class TrainSettings:
     #: Sequences per forward pass in validation and evaluation.
     eval_batch_size: int = 500
     noise: NoiseConfig = field(default_factory=NoiseConfig)
+    #: Fresh training sequences every epoch: the training split's size (``dataset.num_sequences``
+    #: x its train fraction) and ``dataset.length``, simulated from (seed, epoch) with the
+    #: system's noise model at ``train.noise.levels`` (one per sequence) or ``dataset.sigma``;
+    #: validation and test stay the cached dataset's (:mod:`manifold_nets.streaming`).
+    stream: bool = False
     #: ``cpu``, ``cuda``, ``cuda:1``, ... or ``auto`` (cuda when available).
     device: str = "cpu"
     #: torch intra-op threads (``null``: torch's default).

@@ -24,6 +24,14 @@ resumed run continues from its next epoch): the hook for loggers (the train comm
 TensorBoard writer, :mod:`manifold_nets.tensorboard_log`) and early looks, without the loop
 knowing any of them.
 
+Training data: a fixed :class:`~manifold_nets.data.TrajectoryDataset`, or a stream (a
+:class:`~manifold_nets.streaming.SimulatedStream`, or any
+:class:`~manifold_nets.streaming.DataStream`: ``epoch(int) -> TrajectoryDataset``) from which
+every epoch ``e`` draws ``train_data.epoch(e)``, fresh simulated sequences; the batch order,
+augmentation, transform, ``tbptt``, ``max_batches`` and resume are the same either way (a stream
+gives the same data for the same epoch, so a resumed run sees what the uninterrupted one saw).
+Validation stays on the fixed ``val_data``.
+
 Settings come as one :class:`~manifold_nets.config.TrainSettings` (the ``train`` group of the
 config schema). Data augmentation is a batch transform handed to :func:`fit`
 (:class:`~manifold_nets.augmentation.MeasurementNoise` adds measurement noise of a random
@@ -64,6 +72,7 @@ from .config import TrainSettings
 from .data import TrajectoryDataset
 from .losses import embedding_mse
 from .observer import ObserverState, ResidualObserver
+from .streaming import DataStream
 
 __all__ = [
     "BatchAugment",
@@ -281,7 +290,7 @@ def _prepare(
 
 def fit(
     model: ResidualObserver,
-    train_data: TrajectoryDataset,
+    train_data: TrajectoryDataset | DataStream,
     val_data: TrajectoryDataset,
     settings: TrainSettings,
     *,
@@ -295,6 +304,10 @@ def fit(
 ) -> FitResult:
     """Trains ``model`` in place (it ends with the *last* epoch's weights; load ``best.pt`` for
     the best) and returns a :class:`FitResult`. See the module docstring for the files.
+
+    ``train_data``: a :class:`TrajectoryDataset`, or a stream (``train_data.epoch(e)`` is the
+    data of epoch ``e``, e.g. :class:`~manifold_nets.streaming.SimulatedStream`), drawn afresh
+    every epoch. ``val_data`` is fixed.
 
     ``settings`` (:class:`~manifold_nets.config.TrainSettings`): ``epochs``, ``batch_size``,
     ``lr``, ``weight_decay``, ``schedule`` and ``lr_min`` (each epoch's rate from
@@ -311,18 +324,42 @@ def fit(
     paper's). Steps whose true state is unknown (``data.mask``) are left out of the loss.
     """
     check_settings(settings)
+    stream = _stream(train_data, settings)
     trainer = _Trainer(model, settings, Path(out_dir), seed, config or {})
     trainer.on_epoch = on_epoch
     trainer.augment, trainer.start_fn = augment, start
-    train = _prepare(train_data, model, trainer.device, "training")
+    train = None if stream is not None else _prepare(train_data, model, trainer.device, "training")
     val = _prepare(val_data, model, trainer.device, "validation")
-    start = 1 if settings.resume is None else trainer.resume(settings.resume)
-    if start == 1:
+    first = 1 if settings.resume is None else trainer.resume(settings.resume)
+    if stream is not None and first <= settings.epochs:  # checked before epoch 0's files
+        train = _prepare(stream.epoch(first), model, trainer.device, "training")
+    if first == 1:
         trainer.start(val)
     model.train()
-    for epoch in range(start, settings.epochs + 1):
+    for epoch in range(first, settings.epochs + 1):
+        if stream is not None and epoch > first:
+            train = _prepare(stream.epoch(epoch), model, trainer.device, "training")
         trainer.epoch(epoch, train, val, transform)
     return trainer.result()
+
+
+def _stream(train_data, settings: TrainSettings) -> DataStream | None:
+    """``train_data`` when it is a stream (it has ``epoch``), ``None`` for a fixed dataset."""
+    if isinstance(train_data, TrajectoryDataset):
+        if settings.stream:
+            raise ValueError(
+                "stream=True, but train_data is a fixed TrajectoryDataset: pass a stream "
+                "(manifold_nets.streaming.SimulatedStream(system, ...)) as train_data, or set "
+                "stream=False."
+            )
+        return None
+    if not callable(getattr(train_data, "epoch", None)):
+        raise TypeError(
+            "training data must be a TrajectoryDataset or a stream with epoch(int) -> "
+            f"TrajectoryDataset (e.g. manifold_nets.streaming.SimulatedStream), got "
+            f"{type(train_data).__name__}."
+        )
+    return train_data
 
 
 class _Trainer:

@@ -61,6 +61,7 @@ from manifold_nets.checkpoint import load_checkpoint, load_weights, resolve_chec
 from manifold_nets.config import RunConfig
 from manifold_nets.datasets import training_data
 from manifold_nets.objective import objective_value, parse_objective
+from manifold_nets.streaming import SimulatedStream
 from manifold_nets.tensorboard_log import TensorBoardLog, check_tensorboard
 from manifold_nets.training import EpochCallback, check_settings, fit, validation_loss
 
@@ -118,6 +119,12 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
             "resume continues a run (its weights, optimizer and epoch), init_from starts a new "
             "one from a model's weights; set only one."
         )
+    if cfg.train.stream and cfg.data_file:
+        raise ValueError(
+            f"train.stream=true simulates fresh training sequences every epoch, but "
+            f"data_file={cfg.data_file!r} is a file, which has no simulator; set "
+            "train.stream=false to train on the file, or drop data_file to simulate."
+        )
     if cfg.method.name == "untrained" and cfg.eval.checkpoint:
         raise ValueError(
             "method=untrained evaluates the observer at its initialisation; it cannot load "
@@ -166,9 +173,16 @@ def train(
     noise = None
     if t.noise.sigma_max > 0:
         noise = MeasurementNoise(system, t.noise.sigma_min, t.noise.sigma_max)
+    train_data = parts["train"]
+    if t.stream:
+        train_data = SimulatedStream(
+            system, len(parts["train"]), cfg.dataset.length, sigma=cfg.dataset.sigma,
+            noise_levels=list(t.noise.levels), seed=int(cfg.dataset.seed),
+        )
+        log.info("training data: fresh every epoch (train.stream=true), %r", train_data)
     t0 = time.perf_counter()
     result = fit(
-        model, parts["train"], parts["val"], settings, out_dir=out_dir, seed=int(cfg.seed),
+        model, train_data, parts["val"], settings, out_dir=out_dir, seed=int(cfg.seed),
         transform=noise, config=OmegaConf.to_container(cfg, resolve=True), on_epoch=on_epoch,
     )
     load_weights(model, result.best_path, model.device)
