@@ -20,7 +20,10 @@ import statistics
 from collections.abc import Sequence
 from pathlib import Path
 
-__all__ = ["collect", "summarize", "collect_runs", "comparison_rows", "read_metrics", "step_curves"]
+__all__ = [
+    "collect", "summarize", "collect_runs", "comparison_rows", "horizon_rows", "read_metrics",
+    "step_curves",
+]
 
 
 def _overrides(job: Path) -> dict[str, str]:
@@ -219,3 +222,38 @@ def step_curves(runs: Sequence[dict], sigma: float) -> tuple[dict, int]:
         }
         skip = int(run["metrics"].get("skip_steps", skip))
     return out, skip
+
+
+def horizon_rows(runs: Sequence[dict], steps: Sequence[int], window: int = 10) -> list[dict]:
+    """The error of every method at chosen steps: does it grow past the training length?
+
+    One row per sigma and method: for each metric of the curves (``R``, ``p``, ...) and each
+    step ``k`` of ``steps``, ``"<metric>@<k>"``, the mean of the step curve over
+    ``k - window .. k + window`` (clipped to the curve; the curves are already means over the
+    sequences), and ``"<metric> <last>/<first>"``, the ratio of the last step's value to the
+    first's (at most 1: the error does not grow). Steps beyond a curve are left out.
+    """
+    steps = sorted({int(k) for k in steps})
+    if not steps or steps[0] < 0:
+        raise ValueError(f"steps must be step indices >= 0, e.g. 100 1000; got {list(steps)}.")
+    rows = []
+    sigmas = sorted({float(s) for run in runs for s in run["curves"]})
+    for sigma in sigmas:
+        curves, _ = step_curves(runs, sigma)
+        for method, metrics in curves.items():
+            row: dict = {"sigma": sigma, "method": method}
+            for name, curve in metrics.items():
+                if name == "membership":
+                    continue
+                found = []
+                for k in steps:
+                    if k >= len(curve):
+                        continue
+                    part = curve[max(0, k - window) : k + window + 1]
+                    row[f"{name}@{k}"] = sum(part) / len(part)
+                    found.append(k)
+                if len(found) >= 2 and row[f"{name}@{found[0]}"] > 0:
+                    a, b = found[0], found[-1]
+                    row[f"{name} {b}/{a}"] = row[f"{name}@{b}"] / row[f"{name}@{a}"]
+            rows.append(row)
+    return rows

@@ -260,3 +260,20 @@ def test_a_trained_observer_is_labelled_by_its_experiment(tmp_path):
     cfg = _compose(*_tiny(tmp_path / "data", "eval.plots=false", "name=tiny_exp"))
     metrics = run(cfg, tmp_path / "run")
     assert metrics["method"] == "tiny_exp" and metrics["table"][0]["method"] == "tiny_exp"
+
+
+def test_horizon_table_gives_the_error_at_chosen_steps_and_its_growth(tmp_path):
+    curve = [None] + [0.5] * 150 + [1.0] * 100  # 0.5 up to step 150, 1.0 from step 151
+    res = tmp_path / "run" / "results"
+    res.mkdir(parents=True)
+    table = [{"sigma": 0.1, "method": "learned", "R est": 0.7, "sequences": 2, "steps": 250}]
+    (res / "metrics.json").write_text(json.dumps({"method": "learned", "table": table}))
+    (res / "curves.json").write_text(json.dumps({"0.1": {"R est": curve, "R meas": curve}}))
+    rows = results.horizon_rows(results.collect_runs([tmp_path / "run"]), [100, 200, 9999], window=3)
+    assert rows == [{"sigma": 0.1, "method": "learned", "R@100": 0.5, "R@200": 1.0,
+                     "R 200/100": 2.0}]
+    out = tmp_path / "cmp"
+    assert compare.main([str(tmp_path / "run"), "--out", str(out), "--horizon", "100", "200"]) == 0
+    assert "R 200/100" in (out / "horizon.md").read_text()
+    with pytest.raises(ValueError, match="steps must be step indices >= 0"):
+        results.horizon_rows([], [-1])

@@ -10,7 +10,10 @@ of run folders (or folders holding many, such as a multirun) and writes into ``-
   sequence-step), and rows ``<method> / <reference>`` with the ratio of each trained observer's
   errors to the reference method's (``--reference``, default ``ekf``; below 1: better);
 * ``comparison_vs_sigma.png``: each metric against sigma, one line per method (log scale);
-* ``comparison_sigma<s>.png``: each metric against the step at that sigma, one line per method.
+* ``comparison_sigma<s>.png``: each metric against the step at that sigma, one line per method;
+* with ``--horizon 100 1000``: ``horizon.csv`` / ``horizon.md``, each method's error at those
+  steps (mean over +-10 steps) and the ratio of the last to the first: whether an observer's
+  error grows past the length it was trained on.
 
 ::
 
@@ -30,7 +33,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from manifold_nets.reporting import markdown_table, plot_comparison, plot_vs_sigma, write_table
-from manifold_nets.results import collect_runs, comparison_rows, step_curves
+from manifold_nets.results import collect_runs, comparison_rows, horizon_rows, step_curves
 
 __all__ = ["main"]
 
@@ -45,10 +48,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--reference", default="ekf", help="method the trained observers are divided by")
     ap.add_argument("--title", default=None, help="title of the table and figures")
     ap.add_argument("--skip", type=int, default=None, help="first step drawn in the step figures")
+    ap.add_argument(
+        "--horizon", type=int, nargs="+", default=None, metavar="STEP",
+        help="also tabulate each method's error at these steps (e.g. 100 1000) in horizon.md",
+    )
     args = ap.parse_args(argv)
     try:
         runs = collect_runs(args.folders)
         rows = comparison_rows(runs, args.reference)
+        horizon = horizon_rows(runs, args.horizon) if args.horizon else None
     except (FileNotFoundError, ValueError) as err:
         print(f"error: {err}", file=sys.stderr)
         return 1
@@ -66,6 +74,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 out / f"comparison_sigma{sigma:g}.png",
                 title=f"{title}: sigma = {sigma:g}",
             )
+    if horizon:
+        write_table(horizon, out / "horizon", title=f"{title}: error at steps {args.horizon}")
+        print(markdown_table(horizon))
     print(markdown_table(rows))
     print(f"wrote {out / 'comparison.csv'}, {out / 'comparison.md'} and figures in {out}")
     return 0
