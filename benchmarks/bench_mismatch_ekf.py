@@ -59,7 +59,8 @@ def main() -> None:
         t0 = time.perf_counter()
         ekf = RigidBodyEKF(system, args.sigma)
         ekf.ekf.progress = False
-        err = {k: float(v[:, 10:].mean()) for k, v in system.metrics(ekf.estimate(data), data).items()}
+        metrics = system.metrics(ekf.estimate(data), data)
+        err = {k: float(v[:, 10:].mean()) for k, v in metrics.items()}
         raw = {k: float(v[:, 10:].mean()) for k, v in system.measurement_errors(data).items()}
         row = (
             f"| {name} | {err['R']:.4f} | {err['p']:.4f} | {err['b_omega']:.4f} | "

@@ -84,14 +84,15 @@ def _check_system(system, who: str) -> None:
 
 def _noise_param(name: str, value, zero_ok: bool = False):
     """A noise level of the EKF's model: a float (or a ``(B,)`` tensor, one per sequence)."""
+    bound = ">= 0" if zero_ok else "> 0"
     if isinstance(value, torch.Tensor):
         ok = bool(torch.isfinite(value).all()) and bool((value >= 0 if zero_ok else value > 0).all())
         if not ok or value.dim() != 1:
-            raise ValueError(f"{name} must be finite and {'>= 0' if zero_ok else '> 0'} ((B,) tensor), got {value!r}.")
+            raise ValueError(f"{name} must be finite and {bound} (a (B,) tensor), got {value!r}.")
         return value
     ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
     if not ok or value < 0 or (value == 0 and not zero_ok):
-        raise ValueError(f"{name} must be a finite number {'>= 0' if zero_ok else '> 0'}, got {value!r}.")
+        raise ValueError(f"{name} must be a finite number {bound}, got {value!r}.")
     return float(value)
 
 
@@ -185,8 +186,9 @@ class RigidBodyFilterModel(BiasedReadingsFilterModel):
             raise ValueError(f"rotation_std must be > 0, got {rotation_std!r}.")
         self.rotation_std = float(rotation_std)
         self.dt = system.dt
-        self.reading_std = _noise_param("reading_std", self.sigma if reading_std is None else reading_std)
-        self.pose_std = _noise_param("pose_std", self.sigma if pose_std is None else pose_std)
+        default = lambda v: self.sigma if v is None else v  # noqa: E731
+        self.reading_std = _noise_param("reading_std", default(reading_std))
+        self.pose_std = _noise_param("pose_std", default(pose_std))
         self.bias_walk = _noise_param("bias_walk", bias_walk, zero_ok=True)
 
     # model
@@ -371,7 +373,10 @@ class RigidBodyEKF:
         if not any(isinstance(v, torch.Tensor) for v in params) and params != (
             m.sigma, m.sigma, 0.0
         ):
-            tuned = f", reading_std={m.reading_std:g}, pose_std={m.pose_std:g}, bias_walk={m.bias_walk:g}"
+            tuned = (
+                f", reading_std={m.reading_std:g}, pose_std={m.pose_std:g}, "
+                f"bias_walk={m.bias_walk:g}"
+            )
         return (
             f"RigidBodyEKF(sigma={m.sigma:g}, jacobians={self.ekf.jacobians!r}, "
             f"init_steps={self.init_steps}{tuned})"
