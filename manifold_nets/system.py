@@ -57,7 +57,7 @@ from .losses import factor_errors
 from .progress import progress
 from .registry import Registry
 
-__all__ = ["SYSTEMS", "System", "check_last_dim", "check_number"]
+__all__ = ["SYSTEMS", "System", "check_last_dim", "check_number", "check_simulate_args"]
 
 #: Every imported :class:`System` subclass by ``module.qualname``: what a run folder's
 #: ``system._target_`` may name (:mod:`manifold_nets.registry`).
@@ -85,6 +85,23 @@ def check_number(owner: str, name: str, value: object, positive: bool = False) -
         rel = "> 0" if positive else ">= 0"
         raise ValueError(f"{owner}: {name} must be a finite number {rel}, got {value!r}.")
     return float(value)
+
+
+def check_simulate_args(
+    num_sequences: int, length: int, sigma: float, generator: torch.Generator
+) -> tuple[int, int, float]:
+    """``(num_sequences, length, sigma)`` checked for :meth:`System.simulate` (a
+    ``DatasetError`` or ``TypeError`` naming the argument); for a subclass that writes its own
+    ``simulate``."""
+    n = check_positive_int("num_sequences", num_sequences)
+    t = check_positive_int("length", length)
+    sigma = check_sigma(sigma)
+    if not isinstance(generator, torch.Generator):
+        raise TypeError(
+            f"generator must be a torch.Generator (e.g. torch.Generator().manual_seed(0)), "
+            f"got {type(generator).__name__}."
+        )
+    return n, t, sigma
 
 
 class System(abc.ABC):
@@ -235,14 +252,7 @@ class System(abc.ABC):
         The states do not depend on ``sigma``: the same generator seed gives the same
         trajectories at every noise level. Bad arguments raise before any work.
         """
-        n = check_positive_int("num_sequences", num_sequences)
-        t = check_positive_int("length", length)
-        sigma = check_sigma(sigma)
-        if not isinstance(generator, torch.Generator):
-            raise TypeError(
-                f"generator must be a torch.Generator (e.g. torch.Generator().manual_seed(0)), "
-                f"got {type(generator).__name__}."
-            )
+        n, t, sigma = check_simulate_args(num_sequences, length, sigma, generator)
         x0 = self.sample_initial_state(n, generator)
         drive = self.sample_drive(n, t, generator)
         noise = None

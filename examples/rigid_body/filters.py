@@ -52,6 +52,7 @@ from groups import SO3
 from groups.so3 import left_jacobian, left_jacobian_inverse, skew, unskew
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.ekf import BiasedReadingsFilterModel, check_noise_level
+from manifold_nets.system import check_number
 
 from .system import RigidBody
 
@@ -90,10 +91,7 @@ def _noise_param(name: str, value, zero_ok: bool = False):
         if not ok or value.dim() != 1:
             raise ValueError(f"{name} must be finite and {bound} (a (B,) tensor), got {value!r}.")
         return value
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
-    if not ok or value < 0 or (value == 0 and not zero_ok):
-        raise ValueError(f"{name} must be a finite number {bound}, got {value!r}.")
-    return float(value)
+    return check_number("RigidBodyEKF", name, value, positive=not zero_ok)
 
 
 def _scaled_eye(std, n: int, dtype, device) -> torch.Tensor:

@@ -31,8 +31,8 @@ import math
 import torch
 
 from groups import SO3
-from manifold_nets.data import TrajectoryDataset, check_positive_int, check_sigma
-from manifold_nets.system import check_number
+from manifold_nets.data import TrajectoryDataset
+from manifold_nets.system import check_number, check_simulate_args
 
 from .system import RigidBody
 
@@ -152,14 +152,7 @@ class MismatchedRigidBody(RigidBody):
     ) -> TrajectoryDataset:
         """The nominal motion measured by the mismatched sensors; see the module docstring for
         the laws and the order of the draws. Everything is float64."""
-        n = check_positive_int("num_sequences", num_sequences)
-        t = check_positive_int("length", length)
-        sigma = check_sigma(sigma)
-        if not isinstance(generator, torch.Generator):
-            raise TypeError(
-                f"generator must be a torch.Generator (e.g. torch.Generator().manual_seed(0)), "
-                f"got {type(generator).__name__}."
-            )
+        n, t, sigma = check_simulate_args(num_sequences, length, sigma, generator)
         x0 = self.sample_initial_state(n, generator)
         drive = self.sample_drive(n, t, generator)
         sensed = drive
