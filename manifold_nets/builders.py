@@ -102,6 +102,7 @@ def build_observer(
     *,
     import_core: bool = True,
     dt: float | None = None,
+    system: System | None = None,
 ) -> ResidualObserver:
     """The observer of a ``model`` config (:class:`~manifold_nets.config.ModelConfig`) for a
     system's ``group`` and sizes; ``model.relax`` takes factors off the group
@@ -111,7 +112,9 @@ def build_observer(
     path; with ``import_core=False`` (a config read from a file,
     :func:`manifold_nets.load_observer`) only one already imported
     (:data:`manifold_nets.cores.CORES`), never a module to import. ``dt`` (the system's step)
-    scales the kinematic prior ``model.propagate``."""
+    scales the kinematic prior ``model.propagate``; ``system`` gives the model prior
+    ``model.prior=system`` (its :meth:`~manifold_nets.system.System.predict`)."""
+    prior = _model_prior(model, system)
     group = relax(group, list(model.relax))
     inputs = ObserverInputs(
         dict(model.innovation),
@@ -145,8 +148,35 @@ def build_observer(
         inputs=inputs,
         state_dtype=torch_dtype(model.state_dtype, "model.state_dtype"),
         output_scale=float(getattr(model, "output_scale", 1.0)),
+        prior=prior,
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
+
+
+#: The values of ``model.prior``.
+PRIORS = ("none", "system")
+
+
+def _model_prior(model: ModelConfig | Any, system: System | None):
+    """The prior callable of ``model.prior`` (``None`` for ``none``), checked before any work."""
+    name = getattr(model, "prior", "none") or "none"
+    if name not in PRIORS:
+        raise ValueError(
+            f"model.prior={name!r} is not one of {PRIORS} (system: the system's nominal "
+            "prediction System.predict moves the estimate before the learned update)."
+        )
+    if name == "none":
+        return None
+    if system is None:
+        raise ValueError(
+            "model.prior=system needs the system: pass build_observer(..., system=system)."
+        )
+    if list(model.relax):
+        raise ValueError(
+            f"model.prior=system predicts on the system's own group; it cannot be combined with "
+            f"model.relax={list(model.relax)} (factors taken off the group)."
+        )
+    return system.predict
 
 
 def build_estimator_factory(system: System, method: MethodConfig | Any) -> Callable[..., Any]:

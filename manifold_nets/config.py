@@ -97,6 +97,10 @@ class ModelConfig:
     #: factor's velocity; before the learned update ``x_f <- x_f · exp(system.dt · u_f)``, e.g.
     #: ``{R: [6, 9]}`` for a gyroscope (an extension; ``manifold_nets.inputs``).
     propagate: dict[str, list[int]] = field(default_factory=dict)
+    #: A model prior: ``none`` or ``system``, the system's nominal prediction
+    #: (``System.predict``: for the rigid body the step with the bias-corrected readings) moves
+    #: the estimate before the learned update, which then only corrects it (an extension).
+    prior: str = "none"
     #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
     output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).

@@ -81,7 +81,10 @@ class OnlineStep(nn.Module):
         hidden, y = tuple(args[: self.num_hidden]), args[self.num_hidden]
         net = obs.net_dtype
         context = y.to(net) if not obs.input_dim else torch.cat((y.to(net), args[-1].to(net)), -1)
-        x, hidden = obs._step(x, hidden, obs._context(context), obs._measured(y))
+        u = args[-1] if obs.input_dim else None
+        x, hidden = obs._step(
+            x, hidden, obs._context(context), obs._measured(y), obs._readings(y, u)
+        )
         return (x, *hidden)
 
 

@@ -172,7 +172,7 @@ def load_observer(
         raise ArtefactError(f"{where} does not fit the run schema: {msg}.") from None
     model = build_observer(
         system.group, system.measurement_dim, system.input_dim, cfg.model, import_core=False,
-        dt=getattr(system, "dt", None),
+        dt=getattr(system, "dt", None), system=system,
     )
     if ckpt is None:
         ckpt = load_checkpoint(ckpt_file, map_location=map_location)

@@ -21,6 +21,10 @@ The update is chosen per factor (``group.factor_names``; a non-product group is 
 With a kinematic prior (``ObserverInputs.propagate``) the named factors first move by their
 measured velocity, ``x_f^- = x_f · exp(dt · u_f)``, and the core reads and corrects that
 prediction: ``xhat_{k+1} = xhat_k^- · exp(v_k)`` (or ``exp(v_k) · xhat_k^-`` for ``left``).
+A *model prior* (``prior``, e.g. a system's :meth:`~manifold_nets.system.System.predict`) does the
+same with the whole nominal model, ``xhat_k^- = prior(xhat_k, y_{k+1}, u_k)`` (for the rigid body
+the step with the bias-corrected readings): the core then learns what a filter's update adds to
+the model's prediction, not the prediction.
 
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
@@ -43,7 +47,7 @@ an :class:`~manifold_nets.inputs.ObserverInputs`; the core is any
 from __future__ import annotations
 
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -146,6 +150,10 @@ class ResidualObserver(nn.Module):
             corrections much smaller than 1 (a correction of 1e-3 rad per step of a 35 Hz
             filter), a small scale keeps the optimiser's steps on the weights in proportion.
         hidden_size, num_layers: sizes of the default GRU core (only without ``core``).
+        prior: the model prior, ``prior(x (B, *element_shape), y (B, l), u (B, m) | None) -> x^-``
+            in the state dtype (a system's ``predict``; differentiable in ``x``); ``None``: none.
+            A checkpoint's signature records that there is one (``prior_name``), not what it is.
+        prior_name: what the signature calls the prior (default ``"system"``: ``System.predict``).
     """
 
     def __init__(
@@ -161,6 +169,8 @@ class ResidualObserver(nn.Module):
         hidden_size: int | None = None,
         num_layers: int | None = None,
         output_scale: float = 1.0,
+        prior: Callable[..., torch.Tensor] | None = None,
+        prior_name: str = "system",
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -193,6 +203,18 @@ class ResidualObserver(nn.Module):
         self.input_dim = input_dim
         self.state_dtype = state_dtype
         self.inputs = inputs.check(group, measurement_dim)
+        if prior is not None and not callable(prior):
+            raise TypeError(
+                f"prior must be a callable (x, y, u) -> x^- such as system.predict, got "
+                f"{type(prior).__name__}."
+            )
+        if prior is not None and self.inputs.propagate:
+            raise ValueError(
+                "prior and inputs.propagate are two kinematic priors; use one (prior: the whole "
+                "nominal model, e.g. system.predict; propagate: a factor moved by a measured rate)."
+            )
+        self.prior = prior
+        self.prior_name = str(prior_name) if prior is not None else None
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
         self._numel = math.prod(group.element_shape)
@@ -304,6 +326,7 @@ class ResidualObserver(nn.Module):
             "core": self.core.signature(),
             # absent at 1: the signature of older checkpoints
             **({"output_scale": self.output_scale} if self.output_scale != 1.0 else {}),
+            **({"prior": self.prior_name} if self.prior is not None else {}),
         }
 
     def extra_repr(self) -> str:
@@ -352,14 +375,29 @@ class ResidualObserver(nn.Module):
         y = y.to(device=self.device, dtype=self.state_dtype)
         return [f.unembed(y[..., ys]) for f, _, ys in self._innov]
 
-    def _step(self, x: torch.Tensor, hidden: Hidden, context: torch.Tensor, measured=()):
+    def _readings(self, y: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor | None:
+        """``(y, u)`` ``(..., l + m)`` in the state dtype, as given, for the model prior; ``None``
+        without one."""
+        if self.prior is None:
+            return None
+        parts = [y] if u is None or not self.input_dim else [y, u]
+        return torch.cat([p.to(device=self.device, dtype=self.state_dtype) for p in parts], -1)
+
+    def _step(
+        self, x: torch.Tensor, hidden: Hidden, context: torch.Tensor, measured=(), readings=None
+    ):
         """One unchecked step.
 
         ``x``: the flat state ``(B, numel)`` in the state dtype; ``context``: ``(B, l + m)`` in the
         network dtype (less the relative-only columns); ``measured``: the step's measured factor
-        elements (innovation only).
+        elements (innovation only); ``readings``: the step's ``(y, u)`` ``(B, l + m)`` in the
+        state dtype (model prior only).
         """
         net = context.dtype
+        if self.prior is not None:
+            y = readings[:, : self.measurement_dim]
+            u = readings[:, self.measurement_dim :] if self.input_dim else None
+            x = self.prior(x.unflatten(-1, self.group.element_shape), y, u).flatten(1)
         extra = None
         if self._num_extra:
             context, extra = context[:, : -self._num_extra], context[:, -self._num_extra :]
@@ -484,6 +522,7 @@ class ResidualObserver(nn.Module):
             state.hidden,
             context,
             self._measured(y),
+            self._readings(y, u),
         )
         return ObserverState(x.view(x.shape[0], *self.group.element_shape), hidden)
 
@@ -525,11 +564,13 @@ class ResidualObserver(nn.Module):
             )
         else:
             measured = [()] * len(steps)
+        readings = self._readings(measurements, inputs)
+        readings = [None] * len(steps) if readings is None else readings.transpose(0, 1).unbind(0)
         step = self._step
         if self._compiled_step is not None and torch.is_grad_enabled():
             step = self._compiled_step
-        for c, m in zip(steps, measured):
-            x, hidden = step(x, hidden, c, m)
+        for c, m, r in zip(steps, measured, readings):
+            x, hidden = step(x, hidden, c, m, r)
             xs.append(x)
         est = torch.stack(xs, dim=1).unflatten(-1, self.group.element_shape)
         if return_state:

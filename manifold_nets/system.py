@@ -36,7 +36,8 @@ a subclass against this contract.
 Optional hooks for classical filters and baselines (:mod:`manifold_nets.ekf`,
 :mod:`manifold_nets.baselines`): ``measurement_residual`` (how a measurement is compared with a
 predicted one; default the plain difference), ``state_from_measurement`` (the raw-measurement
-baseline) and ``drive_from_measurement`` (the drive as read, for dead reckoning).
+baseline), ``drive_from_measurement`` (the drive as read, for dead reckoning) and ``predict``
+(the nominal prediction from an estimate and the readings; the learned observer's model prior).
 :meth:`System.estimators` names the classical estimators a system offers, which hydra's
 ``method=<name>`` selects.
 """
@@ -362,6 +363,20 @@ class System(abc.ABC):
             f"(input_dim={self.input_dim}); override drive_from_measurement(y, u) to say how the "
             f"drive is read from the measurement and input (e.g. velocity readings in y)."
         )
+
+    def predict(self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor:
+        """The nominal model's prediction ``x_{k+1}^-`` from an estimate ``x_k`` and the step's
+        readings ``y_{k+1}``, ``u_k``: what a filter's predict step computes.
+
+        ``x`` ``(*batch, *element_shape)``, ``y`` ``(*batch, measurement_dim)``, ``u``
+        ``(*batch, input_dim)`` or ``None``; returns ``(*batch, *element_shape)``. The learned
+        observer's model prior (``model.prior=system``) moves its estimate by this before the
+        network's correction. Default: ``step(x, drive_from_measurement(y, u))``, dead reckoning
+        on the drive as read. A system whose readings carry biases held in the state subtracts
+        the estimate's (the rigid body: ``Omega^m - bhat_Omega``); it must stay differentiable
+        in ``x`` (the observer is trained through it).
+        """
+        return self.step(x, self.drive_from_measurement(y, u))
 
     def estimators(self) -> dict[str, Callable[..., Any]]:
         """The classical estimators of this system by name: ``{name: factory}``.

@@ -233,6 +233,10 @@ class Attitude(System):
         _check_last(y, 9, "measurements")
         return y[..., 6:]
 
+    def predict(self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor:
+        """The prediction from the bias-corrected gyro: :meth:`step` with ``Omega^m - bhat``."""
+        return self.step(x, self.drive_from_measurement(y, u) - x[..., 9:])
+
     def metrics(self, estimates: torch.Tensor, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """The per-factor errors (``R``: ``||Rhat - R||_F``; ``b_omega``: ``||bhat - b||`` rad/s)
         and ``attitude_deg``, the rotation angle of ``Rhat^T R`` in degrees; each ``(N, T')``."""

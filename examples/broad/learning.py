@@ -67,7 +67,8 @@ def make_observer(system: BroadSimulator, model: ModelConfig, seed: int = 0) -> 
     integrates the gyroscope and corrects nothing)."""
     torch.manual_seed(seed)
     obs = build_observer(
-        system.group, system.measurement_dim, system.input_dim, model, dt=system.dt
+        system.group, system.measurement_dim, system.input_dim, model, dt=system.dt,
+        system=system,
     )
     head = getattr(obs.core, "head", None)
     if isinstance(head, torch.nn.Linear):

@@ -298,6 +298,11 @@ class Planar(System):
         _check_last(y, 4, "measurements")
         return y[..., 2:]
 
+    def predict(self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor:
+        """The prediction from the bias-corrected odometry: :meth:`step` with
+        ``(v^m - bhat_v, omega^m - bhat_omega)``."""
+        return self.step(x, self.drive_from_measurement(y, u) - x[..., -2:])
+
     def metrics(self, estimates: torch.Tensor, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """The per-factor errors (``pose``, or ``R`` and ``p``: embedding norms; ``b_v`` m/s;
         ``b_omega`` rad/s),

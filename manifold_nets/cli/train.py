@@ -256,7 +256,7 @@ def _train_and_evaluate(
         torch.manual_seed(int(cfg.seed))
         model = build_observer(
             system.group, system.measurement_dim, system.input_dim, cfg.model,
-            dt=getattr(system, "dt", None),
+            dt=getattr(system, "dt", None), system=system,
         ).to(device)
         n_params = sum(p.numel() for p in model.parameters())
         log.info("observer: %s, %d parameters", model.signature(), n_params)
