@@ -17,6 +17,7 @@ from manifold_nets import load_observer
 SHIPPED = Path(__file__).parents[1] / "examples" / "rigid_body" / "pretrained"
 NAMES = [
     "paper_cpu_relative_long1000",
+    "paper_cpu_prior_long1000",
     "mismatch_bias_walk",
     "mismatch_outliers",
     "mismatch_correlated",
