@@ -18,7 +18,7 @@ from groups import LieGroup
 from .config import DTYPES, MethodConfig, ModelConfig
 from .cores import CORES, GRUCore, RecurrentCore
 from .inputs import ObserverInputs
-from .observer import ResidualObserver
+from .observer import ResidualObserver, core_output_size
 from .relax import relax
 from .system import System
 
@@ -127,9 +127,21 @@ def build_observer(
         dt=dt,
     )
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)
+    gain = getattr(model, "gain", False)
+    if not isinstance(gain, bool):
+        raise ValueError(f"model.gain must be true or false, got {gain!r}.")
+    if gain and not inputs.innovation:
+        raise ValueError(
+            "model.gain=true multiplies a learned gain with the innovation, but model.innovation "
+            "is empty; name the measured factors there (e.g. {R: [0, 9], p: [9, 12]}) or set "
+            "model.gain=false."
+        )
     core_cls = _core_class(model.core, import_core)
     core = core_cls(
-        in_size, group.tangent_dim, hidden_size=model.hidden_size, num_layers=model.num_layers
+        in_size,
+        core_output_size(group, inputs, gain),
+        hidden_size=model.hidden_size,
+        num_layers=model.num_layers,
     )
     rules = dict(model.updates)
     unknown = sorted(set(rules) - set(group.factor_names))
@@ -149,6 +161,7 @@ def build_observer(
         state_dtype=torch_dtype(model.state_dtype, "model.state_dtype"),
         output_scale=float(getattr(model, "output_scale", 1.0)),
         prior=prior,
+        gain=gain,
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 

@@ -101,6 +101,9 @@ class ModelConfig:
     #: (``System.predict``: for the rigid body the step with the bias-corrected readings) moves
     #: the estimate before the learned update, which then only corrects it (an extension).
     prior: str = "none"
+    #: The gain head: the core outputs an offset ``a`` and a gain ``K`` and the update is
+    #: ``v = a + K nu``, ``nu`` the innovation (needs ``innovation``; an extension).
+    gain: bool = False
     #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
     output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).

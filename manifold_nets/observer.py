@@ -26,6 +26,14 @@ same with the whole nominal model, ``xhat_k^- = prior(xhat_k, y_{k+1}, u_k)`` (f
 the step with the bias-corrected readings): the core then learns what a filter's update adds to
 the model's prediction, not the prediction.
 
+A *gain head* (``gain=True``, needs innovation inputs) makes the core's output a Kalman-type
+update: the core outputs an offset ``a_k`` and a gain matrix ``K_k`` (``tangent_dim`` x the
+innovation's width) and ``v_k = a_k + K_k nu_k`` with ``nu_k`` the innovation it reads
+(``ObserverInputs.innovation``). What a filter does with the innovation (a gain that shrinks as
+the estimate converges; a bias corrected in proportion to the attitude innovation) is then
+linear in what the core computes, where a plain head must produce ``K nu`` through its
+nonlinearities.
+
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
 returns the estimates ``(N, T+1, *group.element_shape)``, ``xhat_0 .. xhat_T``.
@@ -59,7 +67,7 @@ from groups import Euclidean, LieGroup
 from .cores import GRUCore, Hidden, RecurrentCore
 from .inputs import ObserverInputs
 
-__all__ = ["UPDATE_RULES", "ObserverState", "ResidualObserver"]
+__all__ = ["UPDATE_RULES", "ObserverState", "ResidualObserver", "core_output_size"]
 
 #: The per-factor update rules.
 UPDATE_RULES = ("residual", "absolute", "left")
@@ -121,6 +129,13 @@ def _blocks(group: LieGroup, rules: tuple[str, ...]) -> list[_Block]:
     return blocks
 
 
+def core_output_size(group: LieGroup, inputs: ObserverInputs, gain: bool = False) -> int:
+    """How many numbers the core outputs per step: ``group.tangent_dim``, or with the gain head
+    ``tangent_dim * (1 + innovation width)`` (the offset ``a``, then ``K`` row by row)."""
+    n = group.tangent_dim
+    return n * (1 + inputs.innovation_dim(group)) if gain else n
+
+
 # ---------------------------------------------------------------------- the observer
 
 
@@ -154,6 +169,11 @@ class ResidualObserver(nn.Module):
             in the state dtype (a system's ``predict``; differentiable in ``x``); ``None``: none.
             A checkpoint's signature records that there is one (``prior_name``), not what it is.
         prior_name: what the signature calls the prior (default ``"system"``: ``System.predict``).
+        gain: the gain head: the core outputs ``(a, K)``, ``tangent_dim * (1 + innovation
+            width)`` numbers, and ``v = a + K nu`` (see the module docstring; needs
+            ``inputs.innovation``). :func:`core_output_size` says how wide the core's output is.
+            With a :class:`~manifold_nets.cores.GRUCore` the head's rows of ``K`` start at zero;
+            a core of your own should start its ``K`` small too.
     """
 
     def __init__(
@@ -171,6 +191,7 @@ class ResidualObserver(nn.Module):
         output_scale: float = 1.0,
         prior: Callable[..., torch.Tensor] | None = None,
         prior_name: str = "system",
+        gain: bool = False,
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -215,6 +236,8 @@ class ResidualObserver(nn.Module):
             )
         self.prior = prior
         self.prior_name = str(prior_name) if prior is not None else None
+        self.gain = self._check_gain(gain)
+        self._innov_dim = self.inputs.innovation_dim(group)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
         self._numel = math.prod(group.element_shape)
@@ -227,8 +250,28 @@ class ResidualObserver(nn.Module):
         self.register_buffer("_keep_embedding", keep_embedding, persistent=False)
         self.register_buffer("_keep_context", keep_context, persistent=False)
         self.core = self._check_core(core, hidden_size, num_layers)  # checks the inputs
+        if gain and isinstance(self.core, GRUCore):
+            self._zero_gain(self.core)
         self._setup_extras(group, self.inputs)
         self._compiled_step = None
+
+    def _check_gain(self, gain: bool) -> bool:
+        if not isinstance(gain, bool):
+            raise TypeError(f"gain must be True or False, got {gain!r}.")
+        if gain and not self.inputs.innovation:
+            raise ValueError(
+                "gain=True multiplies a learned gain with the innovation, but the observer reads "
+                "none; give inputs.innovation ({factor: (start, stop)} in y, model.innovation) or "
+                "drop the gain."
+            )
+        return gain
+
+    def _zero_gain(self, core: GRUCore) -> None:
+        """``K`` starts at zero: the untrained observer is the prior plus a bounded offset, not a
+        random feedback of the innovation (which can make the estimate run away)."""
+        with torch.no_grad():
+            core.head.weight[self.group.tangent_dim :].zero_()
+            core.head.bias[self.group.tangent_dim :].zero_()
 
     def _setup_extras(self, group: LieGroup, inputs: ObserverInputs) -> None:
         """The raw ``(y, u)`` columns appended to the context for the kinematic prior and the
@@ -261,7 +304,7 @@ class ResidualObserver(nn.Module):
     def _check_core(self, core, hidden_size, num_layers) -> RecurrentCore:
         """``core``, or the default GRU core, checked against the sizes the observer needs."""
         in_size = self.inputs.core_input_size(self.group, self.measurement_dim, self.input_dim)
-        out_size = self.group.tangent_dim
+        out_size = core_output_size(self.group, self.inputs, self.gain)
         if core is None:
             return GRUCore(in_size, out_size, hidden_size or 512, num_layers or 2)
         if not isinstance(core, RecurrentCore):
@@ -279,7 +322,13 @@ class ResidualObserver(nn.Module):
                 f"dims = {self.group.embedding_dim} + {self.measurement_dim} + {self.input_dim} "
                 f"+ {self.inputs.innovation_dim(self.group)}"
                 + (f", less relative_only {list(relative)}" if relative else "")
-                + f") -> tangent_dim = {out_size}."
+                + f") -> {out_size}"
+                + (
+                    f" (the gain head: tangent_dim x (1 + innovation width) = "
+                    f"{self.group.tangent_dim} x {1 + self._innov_dim})."
+                    if self.gain
+                    else " = tangent_dim."
+                )
             )
         return core
 
@@ -327,6 +376,7 @@ class ResidualObserver(nn.Module):
             # absent at 1: the signature of older checkpoints
             **({"output_scale": self.output_scale} if self.output_scale != 1.0 else {}),
             **({"prior": self.prior_name} if self.prior is not None else {}),
+            **({"gain": True} if self.gain else {}),
         }
 
     def extra_repr(self) -> str:
@@ -405,14 +455,21 @@ class ResidualObserver(nn.Module):
         e = self._embed(x)
         if self._keep_embedding is not None:
             e = e.index_select(-1, self._keep_embedding)
-        parts = [e.to(net), context]
-        for (f, xs, _), m in zip(self._innov, measured):
-            parts.append(f.rminus(m, x[:, xs].unflatten(-1, f.element_shape)).to(net))
+        innovation = [
+            f.rminus(m, x[:, xs].unflatten(-1, f.element_shape)).to(net)
+            for (f, xs, _), m in zip(self._innov, measured)
+        ]
+        parts = [e.to(net), context, *innovation]
         for xs, cols in self._rotated:  # world-frame vectors R v of body-frame v
             R = x[:, xs].unflatten(-1, (3, 3)).to(net)
             vecs = extra[:, cols].unflatten(-1, (-1, 3))
             parts.append((vecs @ R.transpose(-1, -2)).flatten(-2))
         v, hidden = self.core.step(torch.cat(parts, dim=-1), hidden)
+        if self.gain:  # v = a + K nu
+            n = self.group.tangent_dim
+            nu = innovation[0] if len(innovation) == 1 else torch.cat(innovation, dim=-1)
+            gain = v[:, n:].unflatten(-1, (n, self._innov_dim))
+            v = v[:, :n] + (gain @ nu.unsqueeze(-1)).squeeze(-1)
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
