@@ -6,8 +6,6 @@ it; bad settings say what is wrong; the train command trains and reloads it."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -20,6 +18,7 @@ from manifold_nets.cores import RecurrentCore
 from manifold_nets.inputs import ObserverInputs
 from manifold_nets.observer import ObserverState, ResidualObserver, core_output_size
 from manifold_nets_examples.rigid_body import RigidBody
+from tests.observer_checks import assert_online_matches_rollout, train_tiny_and_load
 
 
 def simulate(system, n=4, t=30, sigma=0.0, seed=1):
@@ -123,16 +122,7 @@ def test_rollout_online_steps_and_the_exported_step_agree(prior):
     with torch.no_grad():
         for p in obs.core.head.parameters():  # a gain that is not zero
             p.normal_(0, 0.05)
-        est = obs(data.measurements)
-        state = obs.init_state(3)
-        for k in range(12):
-            state = obs.step(state, data.measurements[:, k])
-            assert torch.allclose(state.estimate, est[:, k + 1], atol=1e-12)
-        step = obs.online_step_module()
-        x, *hidden = step.initial_state(3)
-        for k in range(12):
-            x, *hidden = step(x, *hidden, data.measurements[:, k])
-    assert torch.allclose(x, est[:, -1].reshape(3, -1), atol=1e-12)
+    est = assert_online_matches_rollout(obs, data.measurements)
     system.group.check_member(est)
 
 
@@ -174,19 +164,7 @@ def test_bad_gain_settings_say_what_is_wrong():
 
 
 def test_the_train_command_trains_with_the_gain_and_load_observer_rebuilds_it(tmp_path):
-    from hydra import compose, initialize_config_dir
-
-    from manifold_nets import load_observer
-    from manifold_nets.cli.train import run
-
-    root = Path(__file__).resolve().parents[1]
-    overrides = [
-        "experiment=paper_cpu_prior_gain", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}",
-    ]
-    with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=overrides)
-    run(cfg, tmp_path / "run")
-    observer, system, _ = load_observer(tmp_path / "run")
+    observer, system, _ = train_tiny_and_load("paper_cpu_prior_gain", tmp_path)
     assert observer.signature()["gain"] is True and observer.gain
     data = simulate(system, n=2, t=5, sigma=0.1)
     with torch.inference_mode():

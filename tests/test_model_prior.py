@@ -5,8 +5,6 @@ gradient flows through it; the signature records it; bad settings say what is wr
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import pytest
 import torch
 from omegaconf import OmegaConf
@@ -19,6 +17,7 @@ from manifold_nets.observer import ObserverState, ResidualObserver
 from manifold_nets_examples.attitude import Attitude
 from manifold_nets_examples.planar import Planar
 from manifold_nets_examples.rigid_body import MismatchedRigidBody, RigidBody
+from tests.observer_checks import assert_online_matches_rollout, train_tiny_and_load
 
 SYSTEMS = {
     "rigid_body": lambda: RigidBody(),
@@ -109,17 +108,7 @@ def test_rollout_online_steps_and_the_exported_step_agree(pose_group):
     system = RigidBody(pose_group=pose_group)
     data = simulate(system, n=3, t=12, sigma=0.3)
     obs = rigid_observer(system, innovation={}, relative_only=[])
-    with torch.no_grad():
-        est = obs(data.measurements)
-        state = obs.init_state(3)
-        for k in range(12):
-            state = obs.step(state, data.measurements[:, k])
-            assert torch.allclose(state.estimate, est[:, k + 1], atol=1e-12)
-        step = obs.online_step_module()
-        x, *hidden = step.initial_state(3)
-        for k in range(12):
-            x, *hidden = step(x, *hidden, data.measurements[:, k])
-    assert torch.allclose(x, est[:, -1].reshape(3, -1), atol=1e-12)
+    est = assert_online_matches_rollout(obs, data.measurements)
     system.group.check_member(est)
 
 
@@ -166,19 +155,7 @@ def test_bad_prior_settings_say_what_is_wrong():
 
 
 def test_the_train_command_trains_with_the_prior_and_load_observer_rebuilds_it(tmp_path):
-    from hydra import compose, initialize_config_dir
-
-    from manifold_nets import load_observer
-    from manifold_nets.cli.train import run
-
-    root = Path(__file__).resolve().parents[1]
-    overrides = [
-        "experiment=paper_cpu_prior", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}",
-    ]
-    with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=overrides)
-    run(cfg, tmp_path / "run")
-    observer, system, _ = load_observer(tmp_path / "run")
+    observer, system, _ = train_tiny_and_load("paper_cpu_prior", tmp_path)
     assert observer.signature()["prior"] == "system"
     assert observer.prior == system.predict
     data = simulate(system, n=2, t=5, sigma=0.1)

@@ -1,0 +1,43 @@
+"""Shared test helpers for observer options: rollout = online = exported step; a tiny train
+command run loaded back."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+
+
+def assert_online_matches_rollout(obs, measurements: torch.Tensor, atol: float = 1e-12):
+    """Rolls ``obs`` over ``measurements`` (N, T, l), steps it online and through
+    ``online_step_module()`` (what the exporters trace), and asserts every estimate agrees to
+    ``atol``. Returns the rollout's estimates."""
+    n, t = measurements.shape[:2]
+    with torch.no_grad():
+        est = obs(measurements)
+        state = obs.init_state(n)
+        for k in range(t):
+            state = obs.step(state, measurements[:, k])
+            assert torch.allclose(state.estimate, est[:, k + 1], atol=atol), k
+        step = obs.online_step_module()
+        x, *hidden = step.initial_state(n)
+        for k in range(t):
+            x, *hidden = step(x, *hidden, measurements[:, k])
+    assert torch.allclose(x, est[:, -1].reshape(n, -1), atol=atol)
+    return est
+
+
+def train_tiny_and_load(experiment: str, tmp_path):
+    """Runs the train command on ``experiment`` with ``debug=tiny`` into ``tmp_path / "run"`` and
+    loads the result back: ``(observer, system, config)`` from ``manifold_nets.load_observer``."""
+    from hydra import compose, initialize_config_dir
+
+    from manifold_nets import load_observer
+    from manifold_nets.cli.train import run
+
+    root = Path(__file__).resolve().parents[1]
+    overrides = [f"experiment={experiment}", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}"]
+    with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
+        cfg = compose("train", overrides=overrides)
+    run(cfg, tmp_path / "run")
+    return load_observer(tmp_path / "run")
