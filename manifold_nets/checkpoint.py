@@ -201,14 +201,26 @@ def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:
 
 
 def load_weights(
-    model: torch.nn.Module, where: str | os.PathLike, map_location: str | torch.device = "cpu"
+    model: torch.nn.Module,
+    where: str | os.PathLike,
+    map_location: str | torch.device = "cpu",
+    widen_gain: bool = False,
 ) -> tuple[Path, dict[str, Any]]:
     """Loads the weights of ``where`` (a checkpoint, or a run folder: its ``best.pt``) into
     ``model`` after checking the checkpoint is for the same model (``model.signature()``).
 
+    With ``widen_gain`` (``train.init_from``) the checkpoint of an observer without the gain
+    head also loads into the same observer with one, which then starts out computing what the
+    checkpoint's does (``ResidualObserver.state_with_gain``: ``K = 0``).
+
     Returns the file and the checkpoint's contents.
     """
     path = resolve_checkpoint(where, name="best.pt")
-    ckpt = load_checkpoint(path, expected_signature=model.signature(), map_location=map_location)
+    ckpt = load_checkpoint(path, map_location=map_location)
+    found = ckpt["signature"]
+    if widen_gain and getattr(model, "gain", False) and not found.get("gain"):
+        ckpt = {**ckpt, "model": model.state_with_gain(ckpt["model"], found, where=str(path))}
+    else:
+        check_signature(found, model.signature(), where=str(path))
     load_state(model, ckpt, path)
     return path, ckpt

@@ -172,7 +172,9 @@ class TrainSettings:
     resume: Optional[str] = None
     #: Start from a trained model's weights (a checkpoint, or a run folder: its ``best.pt``)
     #: with a fresh optimizer and epoch count: fine-tuning, e.g. on other data. The model must
-    #: be the same (checked); not together with ``resume``.
+    #: be the same (checked); not together with ``resume``. One exception: the checkpoint of an
+    #: observer without the gain head starts the same observer with one (``model.gain``) where
+    #: that one is (``K = 0``; ``ResidualObserver.state_with_gain``).
     init_from: Optional[str] = None
     #: Show a progress bar with the running loss (on a terminal).
     progress: bool = True

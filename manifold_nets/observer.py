@@ -379,6 +379,40 @@ class ResidualObserver(nn.Module):
             **({"gain": True} if self.gain else {}),
         }
 
+    def state_with_gain(self, state: dict, signature: dict, where: str = "checkpoint") -> dict:
+        """A ``state_dict`` for this gain-head observer from one of the same observer without the
+        gain head (``state`` and its ``signature``): the same weights, the head's offset rows
+        rescaled by that observer's ``output_scale`` over this one's, the rows of ``K`` zero, so
+        this observer starts out computing exactly what that one does (``train.init_from``).
+
+        Raises :class:`~manifold_nets.checkpoint.CheckpointError` when the two differ in more
+        than the gain head and the output scale, or this observer has no gain head or no
+        :class:`~manifold_nets.cores.GRUCore`."""
+        from .checkpoint import CheckpointError, check_signature
+
+        own = self.signature()
+        if not self.gain or not isinstance(self.core, GRUCore) or signature.get("gain"):
+            raise CheckpointError(
+                f"{where}: a plain observer's weights widen only into an observer with the gain "
+                "head and a GRU core (model.gain=true, model.core=gru)."
+            )
+
+        def plain(sig: dict) -> dict:
+            sig = {k: v for k, v in sig.items() if k not in ("gain", "output_scale")}
+            return {**sig, "core": {**sig.get("core", {}), "output_size": None}}
+
+        check_signature(plain(signature), plain(own), where=where)
+        n, ratio = self.group.tangent_dim, float(signature.get("output_scale", 1.0))
+        ratio /= self.output_scale
+        out = dict(state)
+        for name in ("core.head.weight", "core.head.bias"):
+            old = state[name]
+            if old.shape[0] != n:
+                raise CheckpointError(f"{where}: {name} has {old.shape[0]} rows, expected {n}.")
+            gain = torch.zeros((self.core.output_size - n, *old.shape[1:]), dtype=old.dtype)
+            out[name] = torch.cat([old * ratio, gain.to(old.device)])
+        return out
+
     def extra_repr(self) -> str:
         return (
             f"group={self.group!r}, measurement_dim={self.measurement_dim}, "

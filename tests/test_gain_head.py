@@ -12,7 +12,7 @@ from omegaconf import OmegaConf
 
 from groups import SO3, Euclidean, Product
 from manifold_nets.builders import build_observer
-from manifold_nets.checkpoint import CheckpointError, check_signature
+from manifold_nets.checkpoint import CheckpointError, check_signature, load_weights, save_checkpoint
 from manifold_nets.config import ModelConfig
 from manifold_nets.cores import RecurrentCore
 from manifold_nets.inputs import ObserverInputs
@@ -161,6 +161,39 @@ def test_bad_gain_settings_say_what_is_wrong():
     core = FixedCore(inputs.core_input_size(system.group, 18), torch.zeros(12))
     with pytest.raises(ValueError, match=r"-> 48 \(the gain head: tangent_dim x"):
         ResidualObserver(system.group, 18, core=core, inputs=inputs, gain=True)
+
+
+def save_plain(obs, path):
+    return save_checkpoint(
+        path, {"model": obs.state_dict(), "signature": obs.signature(), "config": {}, "epoch": 1}
+    )
+
+
+@pytest.mark.parametrize("scale", [1.0, 0.1])
+def test_a_plain_observers_weights_start_the_gain_observer_where_it_is(tmp_path, scale):
+    """``train.init_from`` a checkpoint without the gain head: the gain observer computes what
+    the plain one does (the offset rows rescaled to its output_scale, K = 0)."""
+    system = RigidBody()
+    plain = rigid_observer(system, gain=False, seed=1)
+    path = save_plain(plain, tmp_path / "plain.pt")
+    gain = rigid_observer(system, seed=2, output_scale=scale)
+    with pytest.raises(CheckpointError, match="gain"):  # only fine-tuning widens
+        load_weights(gain, path)
+    load_weights(gain, path, widen_gain=True)
+    assert torch.count_nonzero(gain.core.head.weight[12:]) == 0
+    data = simulate(system, n=3, t=40, sigma=0.2)
+    with torch.no_grad():
+        assert torch.allclose(gain(data.measurements), plain(data.measurements), atol=1e-10)
+
+
+def test_only_a_plain_observer_of_the_same_shape_widens(tmp_path):
+    system = RigidBody()
+    path = save_plain(rigid_observer(system, gain=False, hidden_size=8), tmp_path / "plain.pt")
+    with pytest.raises(CheckpointError, match="hidden_size: checkpoint 8, model 16"):
+        load_weights(rigid_observer(system), path, widen_gain=True)
+    gain_path = save_plain(rigid_observer(system), tmp_path / "gain.pt")
+    with pytest.raises(CheckpointError, match="gain"):  # into a plain observer: no
+        load_weights(rigid_observer(system, gain=False), gain_path, widen_gain=True)
 
 
 def test_the_train_command_trains_with_the_gain_and_load_observer_rebuilds_it(tmp_path):
