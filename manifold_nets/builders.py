@@ -136,10 +136,15 @@ def build_observer(
             "is empty; name the measured factors there (e.g. {R: [0, 9], p: [9, 12]}) or set "
             "model.gain=false."
         )
+    offset = getattr(model, "gain_offset", True)
+    if not offset and not gain:
+        raise ValueError(
+            "model.gain_offset=false (v = K nu) is a form of the gain head; set model.gain=true."
+        )
     core_cls = _core_class(model.core, import_core)
     core = core_cls(
         in_size,
-        core_output_size(group, inputs, gain),
+        core_output_size(group, inputs, gain, offset),
         hidden_size=model.hidden_size,
         num_layers=model.num_layers,
     )
@@ -162,6 +167,7 @@ def build_observer(
         output_scale=float(getattr(model, "output_scale", 1.0)),
         prior=prior,
         gain=gain,
+        offset=offset,
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 

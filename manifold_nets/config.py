@@ -104,6 +104,9 @@ class ModelConfig:
     #: The gain head: the core outputs an offset ``a`` and a gain ``K`` and the update is
     #: ``v = a + K nu``, ``nu`` the innovation (needs ``innovation``; an extension).
     gain: bool = False
+    #: With the gain head, ``false`` drops the offset: ``v = K nu``, no correction without an
+    #: innovation, so the exact truth is a fixed point at zero noise.
+    gain_offset: bool = True
     #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
     output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).

@@ -129,11 +129,14 @@ def _blocks(group: LieGroup, rules: tuple[str, ...]) -> list[_Block]:
     return blocks
 
 
-def core_output_size(group: LieGroup, inputs: ObserverInputs, gain: bool = False) -> int:
+def core_output_size(
+    group: LieGroup, inputs: ObserverInputs, gain: bool = False, offset: bool = True
+) -> int:
     """How many numbers the core outputs per step: ``group.tangent_dim``, or with the gain head
-    ``tangent_dim * (1 + innovation width)`` (the offset ``a``, then ``K`` row by row)."""
+    ``tangent_dim * (1 + innovation width)`` (the offset ``a``, then ``K`` row by row), without
+    the offset ``tangent_dim * innovation width``."""
     n = group.tangent_dim
-    return n * (1 + inputs.innovation_dim(group)) if gain else n
+    return n * (int(offset) + inputs.innovation_dim(group)) if gain else n
 
 
 # ---------------------------------------------------------------------- the observer
@@ -172,6 +175,9 @@ class ResidualObserver(nn.Module):
         gain: the gain head: the core outputs ``(a, K)``, ``tangent_dim * (1 + innovation
             width)`` numbers, and ``v = a + K nu`` (see the module docstring; needs
             ``inputs.innovation``). :func:`core_output_size` says how wide the core's output is.
+        offset: with the gain head, ``False`` drops the offset: ``v = K nu``, so a zero
+            innovation moves nothing but the prior (the truth, measured exactly, is a fixed
+            point).
             With a :class:`~manifold_nets.cores.GRUCore` the head's rows of ``K`` start at zero;
             a core of your own should start its ``K`` small too.
     """
@@ -192,6 +198,7 @@ class ResidualObserver(nn.Module):
         prior: Callable[..., torch.Tensor] | None = None,
         prior_name: str = "system",
         gain: bool = False,
+        offset: bool = True,
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -236,7 +243,7 @@ class ResidualObserver(nn.Module):
             )
         self.prior = prior
         self.prior_name = str(prior_name) if prior is not None else None
-        self.gain = self._check_gain(gain)
+        self.gain, self.offset = self._check_gain(gain, offset)
         self._innov_dim = self.inputs.innovation_dim(group)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
@@ -255,23 +262,29 @@ class ResidualObserver(nn.Module):
         self._setup_extras(group, self.inputs)
         self._compiled_step = None
 
-    def _check_gain(self, gain: bool) -> bool:
+    def _check_gain(self, gain: bool, offset: bool) -> tuple[bool, bool]:
         if not isinstance(gain, bool):
             raise TypeError(f"gain must be True or False, got {gain!r}.")
+        if not isinstance(offset, bool) or (not offset and not gain):
+            raise ValueError(
+                f"offset={offset!r}: offset=False (v = K nu, no offset) is a form of the gain "
+                "head; it needs gain=True."
+            )
         if gain and not self.inputs.innovation:
             raise ValueError(
                 "gain=True multiplies a learned gain with the innovation, but the observer reads "
                 "none; give inputs.innovation ({factor: (start, stop)} in y, model.innovation) or "
                 "drop the gain."
             )
-        return gain
+        return gain, offset
 
     def _zero_gain(self, core: GRUCore) -> None:
         """``K`` starts at zero: the untrained observer is the prior plus a bounded offset, not a
         random feedback of the innovation (which can make the estimate run away)."""
+        first = self.group.tangent_dim if self.offset else 0
         with torch.no_grad():
-            core.head.weight[self.group.tangent_dim :].zero_()
-            core.head.bias[self.group.tangent_dim :].zero_()
+            core.head.weight[first:].zero_()
+            core.head.bias[first:].zero_()
 
     def _setup_extras(self, group: LieGroup, inputs: ObserverInputs) -> None:
         """The raw ``(y, u)`` columns appended to the context for the kinematic prior and the
@@ -304,7 +317,7 @@ class ResidualObserver(nn.Module):
     def _check_core(self, core, hidden_size, num_layers) -> RecurrentCore:
         """``core``, or the default GRU core, checked against the sizes the observer needs."""
         in_size = self.inputs.core_input_size(self.group, self.measurement_dim, self.input_dim)
-        out_size = core_output_size(self.group, self.inputs, self.gain)
+        out_size = core_output_size(self.group, self.inputs, self.gain, self.offset)
         if core is None:
             return GRUCore(in_size, out_size, hidden_size or 512, num_layers or 2)
         if not isinstance(core, RecurrentCore):
@@ -324,8 +337,8 @@ class ResidualObserver(nn.Module):
                 + (f", less relative_only {list(relative)}" if relative else "")
                 + f") -> {out_size}"
                 + (
-                    f" (the gain head: tangent_dim x (1 + innovation width) = "
-                    f"{self.group.tangent_dim} x {1 + self._innov_dim})."
+                    f" (the gain head: tangent_dim x ({int(self.offset)} + innovation width) = "
+                    f"{self.group.tangent_dim} x {int(self.offset) + self._innov_dim})."
                     if self.gain
                     else " = tangent_dim."
                 )
@@ -377,6 +390,7 @@ class ResidualObserver(nn.Module):
             **({"output_scale": self.output_scale} if self.output_scale != 1.0 else {}),
             **({"prior": self.prior_name} if self.prior is not None else {}),
             **({"gain": True} if self.gain else {}),
+            **({"offset": False} if not self.offset else {}),
         }
 
     def state_with_gain(self, state: dict, signature: dict, where: str = "checkpoint") -> dict:
@@ -391,10 +405,14 @@ class ResidualObserver(nn.Module):
         from .checkpoint import CheckpointError, check_signature
 
         own = self.signature()
-        if not self.gain or not isinstance(self.core, GRUCore) or signature.get("gain"):
+        if (
+            not self.gain or not self.offset or not isinstance(self.core, GRUCore)
+            or signature.get("gain")
+        ):
             raise CheckpointError(
                 f"{where}: a plain observer's weights widen only into an observer with the gain "
-                "head and a GRU core (model.gain=true, model.core=gru)."
+                "head, its offset and a GRU core (model.gain=true, model.gain_offset=true, "
+                "model.core=gru)."
             )
 
         def plain(sig: dict) -> dict:
@@ -499,11 +517,12 @@ class ResidualObserver(nn.Module):
             vecs = extra[:, cols].unflatten(-1, (-1, 3))
             parts.append((vecs @ R.transpose(-1, -2)).flatten(-2))
         v, hidden = self.core.step(torch.cat(parts, dim=-1), hidden)
-        if self.gain:  # v = a + K nu
-            n = self.group.tangent_dim
+        if self.gain:  # v = a + K nu, or K nu
+            n, a = self.group.tangent_dim, self.group.tangent_dim if self.offset else 0
             nu = innovation[0] if len(innovation) == 1 else torch.cat(innovation, dim=-1)
-            gain = v[:, n:].unflatten(-1, (n, self._innov_dim))
-            v = v[:, :n] + (gain @ nu.unsqueeze(-1)).squeeze(-1)
+            gain = v[:, a:].unflatten(-1, (n, self._innov_dim))
+            kv = (gain @ nu.unsqueeze(-1)).squeeze(-1)
+            v = v[:, :n] + kv if self.offset else kv
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden

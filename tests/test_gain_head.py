@@ -163,6 +163,57 @@ def test_bad_gain_settings_say_what_is_wrong():
         ResidualObserver(system.group, 18, core=core, inputs=inputs, gain=True)
 
 
+def test_without_the_offset_the_update_is_the_gain_times_the_innovation():
+    group = Product(SO3(), Euclidean(3), names=("R", "p"))
+    inputs = ObserverInputs({"R": (0, 9), "p": (9, 12)})
+    assert core_output_size(group, inputs, gain=True, offset=False) == 6 * 6
+    gen = torch.Generator().manual_seed(3)
+    K = torch.randn(6, 6, generator=gen, dtype=torch.float64) * 0.3
+    core = FixedCore(inputs.core_input_size(group, 12), K.flatten())
+    obs = ResidualObserver(group, 12, core=core, inputs=inputs, gain=True, offset=False)
+    x = group.random((4,), generator=gen, dtype=torch.float64)
+    m = group.random((4,), generator=gen, dtype=torch.float64)
+    new = obs.step(ObserverState(x, core.initial_hidden(4)), m).estimate
+    nu = torch.cat(
+        [SO3().rminus(m[:, :9].unflatten(-1, (3, 3)), x[:, :9].unflatten(-1, (3, 3))),
+         m[:, 9:] - x[:, 9:]],
+        dim=-1,
+    )
+    assert torch.allclose(new[:, 9:], x[:, 9:] + nu @ K[3:].T, atol=1e-12)
+    assert obs.signature()["offset"] is False
+
+
+def test_without_the_offset_the_truth_measured_exactly_is_a_fixed_point():
+    """Any gain, a random one here: started at the truth with noise-free readings the prior's
+    prediction is exact, the innovation zero, so the estimate stays on the truth (to rounding,
+    which a random gain may amplify, hence a small one)."""
+    system = RigidBody()
+    data = simulate(system, t=60, sigma=0.0)
+    obs = rigid_observer(system, gain_offset=False)
+    assert torch.count_nonzero(obs.core.head.weight) == 0  # K starts at zero ...
+    with torch.no_grad():
+        for p in obs.core.head.parameters():  # ... but any K will do
+            p.normal_(0, 0.02)
+    start = ObserverState(data.states[:, 0].clone(), obs.init_state(4).hidden)
+    with torch.no_grad():
+        est = obs(data.measurements, state=start)
+    assert torch.allclose(est, data.states, atol=1e-10)
+    with_offset = rigid_observer(system)  # the offset moves it off
+    with torch.no_grad():
+        est = with_offset(data.measurements, state=start)
+    assert not torch.allclose(est, data.states, atol=1e-6)
+
+
+def test_no_offset_without_the_gain_head_says_so():
+    system = RigidBody()
+    with pytest.raises(ValueError, match="set model.gain=true"):
+        build_observer(
+            system.group, 18, 0, rigid_model(gain=False, gain_offset=False), system=system
+        )
+    with pytest.raises(ValueError, match="offset=False .* needs gain=True"):
+        ResidualObserver(system.group, 18, hidden_size=4, num_layers=1, offset=False)
+
+
 def save_plain(obs, path):
     return save_checkpoint(
         path, {"model": obs.state_dict(), "signature": obs.signature(), "config": {}, "epoch": 1}
