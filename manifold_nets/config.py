@@ -149,6 +149,11 @@ class TrainSettings:
     lr_min: float = 0.0
     #: Clip the gradient's global norm to this value (``null``: no clipping, as the paper).
     grad_clip: Optional[float] = None
+    #: The training loss, also the validation loss that picks ``best.pt``: ``mse`` (the paper's
+    #: ``L``) or ``log_mse`` (the mean of each sequence's ``log L_i``: the sequences at low noise
+    #: weigh as much as the noisy ones; :mod:`manifold_nets.losses`). The test loss the train
+    #: command reports is ``L`` either way.
+    loss: str = "mse"
     #: Truncated backpropagation through time: an optimizer step per this many steps of each
     #: training rollout, the estimate and the hidden state carried (detached) from one piece to
     #: the next, so sequences of thousands of steps train in bounded memory (``null``: BPTT

@@ -70,7 +70,7 @@ from .checkpoint import (
 )
 from .config import TrainSettings
 from .data import TrajectoryDataset
-from .losses import embedding_mse
+from .losses import embedding_log_mse, embedding_mse
 from .observer import ObserverState, ResidualObserver
 from .streaming import DataStream
 
@@ -108,6 +108,11 @@ EpochCallback = Callable[[dict], None]
 log = logging.getLogger(__name__)
 
 SCHEDULES = ("constant", "cosine")
+
+#: The training losses (``train.loss``), each ``(group, estimates, states, mask=) -> scalar``:
+#: ``mse`` the paper's ``L``, ``log_mse`` the mean of each sequence's ``log L_i`` (every
+#: sequence's relative error weighs alike, whatever its noise level; :mod:`~manifold_nets.losses`).
+LOSSES = {"mse": embedding_mse, "log_mse": embedding_log_mse}
 
 _LOG_FIELDS = ("epoch", "train_loss", "val_loss", "best_val_loss", "best_epoch", "lr", "seconds")
 
@@ -159,6 +164,10 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
             "model), e.g. 1.0."
         )
     check_schedule(settings.schedule, float(settings.lr), float(settings.lr_min))
+    if settings.loss not in LOSSES:
+        raise ValueError(
+            f"loss={settings.loss!r} is not a training loss; choose one of {', '.join(LOSSES)}."
+        )
     return settings
 
 
@@ -207,13 +216,17 @@ def _write_logs(out_dir: Path, history: list[dict]) -> None:
 
 
 def batch_loss(
-    model: ResidualObserver, batch: TrajectoryDataset, start: StartFn | None = None
+    model: ResidualObserver,
+    batch: TrajectoryDataset,
+    start: StartFn | None = None,
+    loss: str = "mse",
 ) -> torch.Tensor:
-    """The embedding MSE ``L`` of ``model`` rolled out over ``batch`` (its steps whose true state
-    is unknown, ``batch.mask`` False, left out), started at ``start(batch)`` or the identity."""
+    """The loss (:data:`LOSSES`; default the embedding MSE ``L``) of ``model`` rolled out over
+    ``batch`` (its steps whose true state is unknown, ``batch.mask`` False, left out), started
+    at ``start(batch)`` or the identity."""
     inputs = batch.inputs if batch.inputs.shape[-1] else None
     est = model(batch.measurements, inputs, state=initial_state(model, batch, start))
-    return embedding_mse(model.group, est, batch.states.to(est), mask=batch.mask)
+    return LOSSES[loss](model.group, est, batch.states.to(est), mask=batch.mask)
 
 
 def initial_state(
@@ -245,15 +258,17 @@ def validation_loss(
     data: TrajectoryDataset,
     batch_size: int = 500,
     start: StartFn | None = None,
+    loss: str = "mse",
 ) -> float:
-    """The embedding MSE ``L`` of ``model`` on ``data``, averaged over all its sequences."""
+    """The loss (:data:`LOSSES`; default the embedding MSE ``L``) of ``model`` on ``data``,
+    averaged over all its sequences."""
     was = model.training
     model.eval()
     total = 0.0
     n = len(data)
     for s in range(0, n, batch_size):
         idx = torch.arange(s, min(n, s + batch_size))
-        total += float(batch_loss(model, data[idx], start)) * len(idx)
+        total += float(batch_loss(model, data[idx], start, loss)) * len(idx)
     model.train(was)
     return total / n
 
@@ -460,7 +475,9 @@ class _Trainer:
 
     def start(self, val: TrajectoryDataset) -> None:
         """Epoch 0: the starting model's validation loss, its ``best.pt`` and log row."""
-        v0 = validation_loss(self.model, val, self.settings.eval_batch_size, self.start_fn)
+        v0 = validation_loss(
+            self.model, val, self.settings.eval_batch_size, self.start_fn, self.settings.loss
+        )
         if not math.isfinite(v0):
             raise self.diverged("validation loss of the starting model", v0, 0)
         self.best = {"epoch": 0, "val_loss": v0}
@@ -485,7 +502,7 @@ class _Trainer:
         if s.max_batches is not None:
             batches = batches[: s.max_batches]
         train_loss = self.train_batches(epoch, train, batches, transform)
-        val_loss = validation_loss(self.model, val, s.eval_batch_size, self.start_fn)
+        val_loss = validation_loss(self.model, val, s.eval_batch_size, self.start_fn, s.loss)
         if not math.isfinite(val_loss):
             raise self.diverged("validation loss", val_loss, epoch)
         if val_loss < self.best["val_loss"]:
@@ -528,7 +545,7 @@ class _Trainer:
             if transform is not None:
                 batch.measurements = transform(batch.measurements, self.gen)
             if s.tbptt is None:
-                value = self.optimise(batch_loss(model, batch, self.start_fn))
+                value = self.optimise(batch_loss(model, batch, self.start_fn, s.loss))
             else:
                 value = self.truncated(batch)
             if not math.isfinite(value):
@@ -563,7 +580,9 @@ class _Trainer:
         for piece in _chunks(batch, self.settings.tbptt):
             inputs = piece.inputs if piece.inputs.shape[-1] else None
             est, state = model(piece.measurements, inputs, state=state, return_state=True)
-            loss = embedding_mse(model.group, est, piece.states.to(est), mask=piece.mask)
+            loss = LOSSES[self.settings.loss](
+                model.group, est, piece.states.to(est), mask=piece.mask
+            )
             value = self.optimise(loss)
             if not math.isfinite(value):
                 return value
