@@ -18,6 +18,7 @@ SHIPPED = Path(__file__).parents[1] / "examples" / "rigid_body" / "pretrained"
 NAMES = [
     "paper_cpu_relative_long1000",
     "paper_cpu_prior_long1000",
+    "paper_cpu_prior_log_bptt1000",
     "mismatch_bias_walk_prior_long1000",
     "mismatch_bias_walk",
     "mismatch_outliers",
