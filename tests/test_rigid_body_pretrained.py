@@ -24,6 +24,9 @@ NAMES = [
     "mismatch_outliers",
     "mismatch_correlated",
     "mismatch_sensor",
+    "mismatch_outliers_prior_log_bptt1000",
+    "mismatch_correlated_prior_bptt1000_mse",
+    "mismatch_sensor_prior_log_bptt1000",
 ]
 
 
