@@ -141,6 +141,17 @@ def build_observer(
         raise ValueError(
             "model.gain_offset=false (v = K nu) is a form of the gain head; set model.gain=true."
         )
+    centering = getattr(model, "centering", 0.0)
+    if isinstance(centering, bool) or not isinstance(centering, (int, float)) or not (
+        0 <= centering <= 1
+    ):
+        raise ValueError(f"model.centering must be a number in [0, 1], got {centering!r}.")
+    if centering and not inputs.innovation:
+        raise ValueError(
+            "model.centering subtracts the core's output at zero innovation, but "
+            "model.innovation is empty; name the measured factors there (e.g. {R: [0, 9], "
+            "p: [9, 12]}) or set model.centering=0."
+        )
     core_cls = _core_class(model.core, import_core)
     core = core_cls(
         in_size,
@@ -168,6 +179,7 @@ def build_observer(
         prior=prior,
         gain=gain,
         offset=offset,
+        centering=float(centering),
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 

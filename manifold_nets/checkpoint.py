@@ -211,13 +211,19 @@ def load_weights(
 
     With ``widen_gain`` (``train.init_from``) the checkpoint of an observer without the gain
     head also loads into the same observer with one, which then starts out computing what the
-    checkpoint's does (``ResidualObserver.state_with_gain``: ``K = 0``).
+    checkpoint's does (``ResidualObserver.state_with_gain``: ``K = 0``), and the checkpoint of
+    an observer with another ``centering`` (the centred update; the same weights).
 
     Returns the file and the checkpoint's contents.
     """
     path = resolve_checkpoint(where, name="best.pt")
     ckpt = load_checkpoint(path, map_location=map_location)
     found = ckpt["signature"]
+    if widen_gain and "centering" in {**found, **model.signature()}:
+        # the centred update adds no weight: the same ones load at any other centering
+        found = {k: v for k, v in found.items() if k != "centering"}
+        if getattr(model, "centering", 0.0):
+            found["centering"] = model.centering
     if widen_gain and getattr(model, "gain", False) and not found.get("gain"):
         ckpt = {**ckpt, "model": model.state_with_gain(ckpt["model"], found, where=str(path))}
     else:

@@ -107,6 +107,11 @@ class ModelConfig:
     #: With the gain head, ``false`` drops the offset: ``v = K nu``, no correction without an
     #: innovation, so the exact truth is a fixed point at zero noise.
     gain_offset: bool = True
+    #: The centred update, ``c`` in ``[0, 1]``: ``v = T(z) - c T(z^0)``, less ``c`` times what
+    #: the core outputs when each innovation factor is measured exactly at its prediction
+    #: (needs ``innovation``). At 1 a zero innovation moves nothing but the prior. It adds no
+    #: weight (``train.init_from`` starts it from any other value). 0: none.
+    centering: float = 0.0
     #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
     output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
@@ -182,7 +187,8 @@ class TrainSettings:
     #: with a fresh optimizer and epoch count: fine-tuning, e.g. on other data. The model must
     #: be the same (checked); not together with ``resume``. One exception: the checkpoint of an
     #: observer without the gain head starts the same observer with one (``model.gain``) where
-    #: that one is (``K = 0``; ``ResidualObserver.state_with_gain``).
+    #: that one is (``K = 0``; ``ResidualObserver.state_with_gain``); likewise one without the
+    #: centred update, or another ``model.centering``, starts it (the same weights).
     init_from: Optional[str] = None
     #: Show a progress bar with the running loss (on a terminal).
     progress: bool = True

@@ -34,6 +34,18 @@ the estimate converges; a bias corrected in proportion to the attitude innovatio
 linear in what the core computes, where a plain head must produce ``K nu`` through its
 nonlinearities.
 
+A *centred* update (``centering=c``, ``0 < c <= 1``, needs innovation inputs) subtracts what the
+core would output had the measurement been exactly the prediction::
+
+    v_k = T(z_k) - c T(z_k^0)
+
+``z_k^0`` is ``z_k`` with each innovation factor's measured columns replaced by the embedding of
+its prediction and its innovation by zero; both read the same hidden state, and the hidden
+state moves on with ``z_k``. At ``c = 1`` a zero innovation moves nothing but the prior, as in
+every filter's update: with exact readings the truth is a fixed point whatever the network
+remembers. A ``c`` below 1 is the way there from an observer trained without it (its weights
+load unchanged; fine-tune in stages of growing ``c``). The core runs on twice the batch.
+
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
 returns the estimates ``(N, T+1, *group.element_shape)``, ``xhat_0 .. xhat_T``.
@@ -180,6 +192,10 @@ class ResidualObserver(nn.Module):
             point).
             With a :class:`~manifold_nets.cores.GRUCore` the head's rows of ``K`` start at zero;
             a core of your own should start its ``K`` small too.
+        centering: ``c`` in ``[0, 1]``: ``v = T(z) - c T(z^0)``, the core's output less ``c``
+            times what it outputs when each innovation factor is measured exactly where it is
+            predicted (see the module docstring; needs ``inputs.innovation``; default 0, none).
+            It adds no weight: ``train.init_from`` starts it from any other ``c``.
     """
 
     def __init__(
@@ -199,6 +215,7 @@ class ResidualObserver(nn.Module):
         prior_name: str = "system",
         gain: bool = False,
         offset: bool = True,
+        centering: float = 0.0,
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -244,6 +261,7 @@ class ResidualObserver(nn.Module):
         self.prior = prior
         self.prior_name = str(prior_name) if prior is not None else None
         self.gain, self.offset = self._check_gain(gain, offset)
+        self.centering = self._check_centering(centering)
         self._innov_dim = self.inputs.innovation_dim(group)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
@@ -278,6 +296,27 @@ class ResidualObserver(nn.Module):
             )
         return gain, offset
 
+    def _check_centering(self, centering: float) -> float:
+        if (
+            isinstance(centering, bool) or not isinstance(centering, (int, float))
+            or not 0 <= centering <= 1
+        ):
+            raise ValueError(
+                f"ResidualObserver: centering must be a number in [0, 1], got {centering!r}."
+            )
+        if centering and not self.inputs.innovation:
+            raise ValueError(
+                "centering subtracts the core's output at zero innovation, but the observer reads "
+                "none; give inputs.innovation ({factor: (start, stop)} in y, model.innovation) "
+                "or set centering to 0."
+            )
+        if centering and self.gain and not self.offset:
+            raise ValueError(
+                "centering with the gain head and no offset (v = K nu) changes nothing: that "
+                "update is already zero at zero innovation; set centering to 0."
+            )
+        return float(centering)
+
     def _zero_gain(self, core: GRUCore) -> None:
         """``K`` starts at zero: the untrained observer is the prior plus a bounded offset, not a
         random feedback of the innovation (which can make the estimate run away)."""
@@ -303,6 +342,21 @@ class ResidualObserver(nn.Module):
             self._rotated.append((group.element_slice(name), slice(at, at + 3 * len(spans))))
             at += 3 * len(spans)
         self._dt = inputs.dt
+        # where each innovation factor's measured columns sit in the core's context (None: read
+        # only through its innovation), for the centred update's zero-innovation inputs
+        keep = self._keep_context
+        self._measured_in_context = []
+        for name, (a, b) in inputs.innovation.items():
+            if keep is None:
+                pos = list(range(a, b))
+            elif name in inputs.relative_only:
+                pos = None
+            else:
+                kept = keep.tolist()
+                pos = [kept.index(c) for c in range(a, b)]
+            if pos is not None and pos == list(range(pos[0], pos[0] + len(pos))):
+                pos = slice(pos[0], pos[0] + len(pos))  # the usual case: one block, no gather
+            self._measured_in_context.append(pos)
 
     def _context(self, full: torch.Tensor) -> torch.Tensor:
         """The core's context from the whole ``(..., l + m)`` ``(y, u)``: the kept columns, then
@@ -391,6 +445,7 @@ class ResidualObserver(nn.Module):
             **({"prior": self.prior_name} if self.prior is not None else {}),
             **({"gain": True} if self.gain else {}),
             **({"offset": False} if not self.offset else {}),
+            **({"centering": self.centering} if self.centering else {}),
         }
 
     def state_with_gain(self, state: dict, signature: dict, where: str = "checkpoint") -> dict:
@@ -516,16 +571,46 @@ class ResidualObserver(nn.Module):
             R = x[:, xs].unflatten(-1, (3, 3)).to(net)
             vecs = extra[:, cols].unflatten(-1, (-1, 3))
             parts.append((vecs @ R.transpose(-1, -2)).flatten(-2))
-        v, hidden = self.core.step(torch.cat(parts, dim=-1), hidden)
+        inp = torch.cat(parts, dim=-1)
+        if self.centering:  # v = T(z) - c T(z^0): one core step on both, the hidden state from z
+            b = inp.shape[0]
+            out, hidden = self.core.step(
+                torch.cat((inp, self._zero_innovation(inp, x, e.shape[-1]))),
+                tuple(torch.cat((h, h)) for h in hidden),
+            )
+            hidden = tuple(h[:b] for h in hidden)
+            v = out[:b]
+        else:
+            v, hidden = self.core.step(inp, hidden)
         if self.gain:  # v = a + K nu, or K nu
             n, a = self.group.tangent_dim, self.group.tangent_dim if self.offset else 0
             nu = innovation[0] if len(innovation) == 1 else torch.cat(innovation, dim=-1)
             gain = v[:, a:].unflatten(-1, (n, self._innov_dim))
             kv = (gain @ nu.unsqueeze(-1)).squeeze(-1)
             v = v[:, :n] + kv if self.offset else kv
+        if self.centering:  # at z^0 the innovation is zero: the gain head's K nu drops out
+            v0 = out[b:, : self.group.tangent_dim]
+            v = v - (v0 if self.centering == 1.0 else self.centering * v0)
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
+
+    def _zero_innovation(self, inp: torch.Tensor, x: torch.Tensor, at: int) -> torch.Tensor:
+        """The core's input ``z^0`` from ``z`` (``inp``): each innovation factor measured at its
+        prediction ``x`` (its columns of the context, from column ``at``, set to the
+        prediction's embedding) and its innovation zero."""
+        z0 = inp.clone()
+        for (f, xs, _), pos in zip(self._innov, self._measured_in_context):
+            if pos is not None:
+                pred = f.embed(x[:, xs].unflatten(-1, f.element_shape))
+                cols = (
+                    slice(at + pos.start, at + pos.stop) if isinstance(pos, slice)
+                    else [at + i for i in pos]
+                )
+                z0[:, cols] = pred.reshape(x.shape[0], -1).to(inp.dtype)
+        start = inp.shape[-1] - self._innov_dim - self.inputs.rotated_dim()
+        z0[:, start : start + self._innov_dim] = 0
+        return z0
 
     def _predict(self, x: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
         """The kinematic prior: each ``propagate`` factor moved by ``dt`` times its velocity."""

@@ -27,16 +27,19 @@ def assert_online_matches_rollout(obs, measurements: torch.Tensor, atol: float =
     return est
 
 
-def train_tiny_and_load(experiment: str, tmp_path):
-    """Runs the train command on ``experiment`` with ``debug=tiny`` into ``tmp_path / "run"`` and
-    loads the result back: ``(observer, system, config)`` from ``manifold_nets.load_observer``."""
+def train_tiny_and_load(experiment: str, tmp_path, *more: str):
+    """Runs the train command on ``experiment`` with ``debug=tiny`` (and the overrides ``more``)
+    into ``tmp_path / "run"`` and loads the result back: ``(observer, system, config)`` from
+    ``manifold_nets.load_observer``."""
     from hydra import compose, initialize_config_dir
 
     from manifold_nets import load_observer
     from manifold_nets.cli.train import run
 
     root = Path(__file__).resolve().parents[1]
-    overrides = [f"experiment={experiment}", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}"]
+    overrides = [
+        f"experiment={experiment}", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}", *more
+    ]
     with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
         cfg = compose("train", overrides=overrides)
     run(cfg, tmp_path / "run")
