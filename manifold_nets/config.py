@@ -159,6 +159,11 @@ class TrainSettings:
     #: weigh as much as the noisy ones; :mod:`manifold_nets.losses`). The test loss the train
     #: command reports is ``L`` either way.
     loss: str = "mse"
+    #: Steps left out at the start of every sequence in the training and validation loss: 1,
+    #: the fixed start ``x_0`` only (the paper's ``L``); 10 matches the evaluation
+    #: (``eval.skip_steps``), so the start-up transient does not decide the gradient. With
+    #: ``tbptt`` at most that long (it applies to the first piece).
+    skip_steps: int = 1
     #: Truncated backpropagation through time: an optimizer step per this many steps of each
     #: training rollout, the estimate and the hidden state carried (detached) from one piece to
     #: the next, so sequences of thousands of steps train in bounded memory (``null``: BPTT

@@ -168,6 +168,17 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
         raise ValueError(
             f"loss={settings.loss!r} is not a training loss; choose one of {', '.join(LOSSES)}."
         )
+    skip = settings.skip_steps
+    if not _is_int(skip) or skip < 1:
+        raise ValueError(
+            f"skip_steps must be an integer >= 1 (1: only the fixed start x_0 is left out of the "
+            f"loss), got {skip!r}."
+        )
+    if settings.tbptt is not None and skip > settings.tbptt:
+        raise ValueError(
+            f"skip_steps={skip} is longer than a truncated-BPTT piece (tbptt={settings.tbptt}): "
+            "the first piece would have no step in the loss; use skip_steps <= tbptt."
+        )
     return settings
 
 
@@ -220,13 +231,14 @@ def batch_loss(
     batch: TrajectoryDataset,
     start: StartFn | None = None,
     loss: str = "mse",
+    skip: int = 1,
 ) -> torch.Tensor:
     """The loss (:data:`LOSSES`; default the embedding MSE ``L``) of ``model`` rolled out over
-    ``batch`` (its steps whose true state is unknown, ``batch.mask`` False, left out), started
-    at ``start(batch)`` or the identity."""
+    ``batch`` (its steps ``k < skip`` and those whose true state is unknown, ``batch.mask``
+    False, left out), started at ``start(batch)`` or the identity."""
     inputs = batch.inputs if batch.inputs.shape[-1] else None
     est = model(batch.measurements, inputs, state=initial_state(model, batch, start))
-    return LOSSES[loss](model.group, est, batch.states.to(est), mask=batch.mask)
+    return LOSSES[loss](model.group, est, batch.states.to(est), skip=skip, mask=batch.mask)
 
 
 def initial_state(
@@ -259,16 +271,17 @@ def validation_loss(
     batch_size: int = 500,
     start: StartFn | None = None,
     loss: str = "mse",
+    skip: int = 1,
 ) -> float:
     """The loss (:data:`LOSSES`; default the embedding MSE ``L``) of ``model`` on ``data``,
-    averaged over all its sequences."""
+    averaged over all its sequences (steps ``k < skip`` left out)."""
     was = model.training
     model.eval()
     total = 0.0
     n = len(data)
     for s in range(0, n, batch_size):
         idx = torch.arange(s, min(n, s + batch_size))
-        total += float(batch_loss(model, data[idx], start, loss)) * len(idx)
+        total += float(batch_loss(model, data[idx], start, loss, skip)) * len(idx)
     model.train(was)
     return total / n
 
@@ -475,8 +488,9 @@ class _Trainer:
 
     def start(self, val: TrajectoryDataset) -> None:
         """Epoch 0: the starting model's validation loss, its ``best.pt`` and log row."""
+        s = self.settings
         v0 = validation_loss(
-            self.model, val, self.settings.eval_batch_size, self.start_fn, self.settings.loss
+            self.model, val, s.eval_batch_size, self.start_fn, s.loss, s.skip_steps
         )
         if not math.isfinite(v0):
             raise self.diverged("validation loss of the starting model", v0, 0)
@@ -502,7 +516,9 @@ class _Trainer:
         if s.max_batches is not None:
             batches = batches[: s.max_batches]
         train_loss = self.train_batches(epoch, train, batches, transform)
-        val_loss = validation_loss(self.model, val, s.eval_batch_size, self.start_fn, s.loss)
+        val_loss = validation_loss(
+            self.model, val, s.eval_batch_size, self.start_fn, s.loss, s.skip_steps
+        )
         if not math.isfinite(val_loss):
             raise self.diverged("validation loss", val_loss, epoch)
         if val_loss < self.best["val_loss"]:
@@ -545,7 +561,9 @@ class _Trainer:
             if transform is not None:
                 batch.measurements = transform(batch.measurements, self.gen)
             if s.tbptt is None:
-                value = self.optimise(batch_loss(model, batch, self.start_fn, s.loss))
+                value = self.optimise(
+                    batch_loss(model, batch, self.start_fn, s.loss, s.skip_steps)
+                )
             else:
                 value = self.truncated(batch)
             if not math.isfinite(value):
@@ -577,11 +595,12 @@ class _Trainer:
         if state is None:
             state = model.init_state(len(batch))
         total, steps = 0.0, 0
-        for piece in _chunks(batch, self.settings.tbptt):
+        for i, piece in enumerate(_chunks(batch, self.settings.tbptt)):
             inputs = piece.inputs if piece.inputs.shape[-1] else None
             est, state = model(piece.measurements, inputs, state=state, return_state=True)
+            skip = self.settings.skip_steps if i == 0 else 1  # a later piece's x_0 was counted
             loss = LOSSES[self.settings.loss](
-                model.group, est, piece.states.to(est), mask=piece.mask
+                model.group, est, piece.states.to(est), skip=skip, mask=piece.mask
             )
             value = self.optimise(loss)
             if not math.isfinite(value):
