@@ -127,31 +127,7 @@ def build_observer(
         dt=dt,
     )
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)
-    gain = getattr(model, "gain", False)
-    if not isinstance(gain, bool):
-        raise ValueError(f"model.gain must be true or false, got {gain!r}.")
-    if gain and not inputs.innovation:
-        raise ValueError(
-            "model.gain=true multiplies a learned gain with the innovation, but model.innovation "
-            "is empty; name the measured factors there (e.g. {R: [0, 9], p: [9, 12]}) or set "
-            "model.gain=false."
-        )
-    offset = getattr(model, "gain_offset", True)
-    if not offset and not gain:
-        raise ValueError(
-            "model.gain_offset=false (v = K nu) is a form of the gain head; set model.gain=true."
-        )
-    centering = getattr(model, "centering", 0.0)
-    if isinstance(centering, bool) or not isinstance(centering, (int, float)) or not (
-        0 <= centering <= 1
-    ):
-        raise ValueError(f"model.centering must be a number in [0, 1], got {centering!r}.")
-    if centering and not inputs.innovation:
-        raise ValueError(
-            "model.centering subtracts the core's output at zero innovation, but "
-            "model.innovation is empty; name the measured factors there (e.g. {R: [0, 9], "
-            "p: [9, 12]}) or set model.centering=0."
-        )
+    gain, offset, centering = _update_form(model, inputs)
     core_cls = _core_class(model.core, import_core)
     core = core_cls(
         in_size,
@@ -179,9 +155,40 @@ def build_observer(
         prior=prior,
         gain=gain,
         offset=offset,
-        centering=float(centering),
+        centering=centering,
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
+
+
+def _update_form(model: ModelConfig | Any, inputs: ObserverInputs) -> tuple[bool, bool, float]:
+    """``model.gain``, ``model.gain_offset`` and ``model.centering``, checked against each other
+    and the inputs."""
+    gain = getattr(model, "gain", False)
+    if not isinstance(gain, bool):
+        raise ValueError(f"model.gain must be true or false, got {gain!r}.")
+    if gain and not inputs.innovation:
+        raise ValueError(
+            "model.gain=true multiplies a learned gain with the innovation, but model.innovation "
+            "is empty; name the measured factors there (e.g. {R: [0, 9], p: [9, 12]}) or set "
+            "model.gain=false."
+        )
+    offset = getattr(model, "gain_offset", True)
+    if not offset and not gain:
+        raise ValueError(
+            "model.gain_offset=false (v = K nu) is a form of the gain head; set model.gain=true."
+        )
+    centering = getattr(model, "centering", 0.0)
+    if isinstance(centering, bool) or not isinstance(centering, (int, float)) or not (
+        0 <= centering <= 1
+    ):
+        raise ValueError(f"model.centering must be a number in [0, 1], got {centering!r}.")
+    if centering and not inputs.innovation:
+        raise ValueError(
+            "model.centering subtracts the core's output at zero innovation, but "
+            "model.innovation is empty; name the measured factors there (e.g. {R: [0, 9], "
+            "p: [9, 12]}) or set model.centering=0."
+        )
+    return gain, offset, float(centering)
 
 
 #: The values of ``model.prior``.

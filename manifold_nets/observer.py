@@ -260,8 +260,7 @@ class ResidualObserver(nn.Module):
             )
         self.prior = prior
         self.prior_name = str(prior_name) if prior is not None else None
-        self.gain, self.offset = self._check_gain(gain, offset)
-        self.centering = self._check_centering(centering)
+        self.gain, self.offset, self.centering = self._check_form(gain, offset, centering)
         self._innov_dim = self.inputs.innovation_dim(group)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
@@ -295,6 +294,12 @@ class ResidualObserver(nn.Module):
                 "drop the gain."
             )
         return gain, offset
+
+    def _check_form(self, gain: bool, offset: bool, centering: float) -> tuple[bool, bool, float]:
+        """The update's form (gain head, its offset, centering), checked against each other and
+        the inputs."""
+        self.gain, self.offset = self._check_gain(gain, offset)
+        return self.gain, self.offset, self._check_centering(centering)
 
     def _check_centering(self, centering: float) -> float:
         if (
