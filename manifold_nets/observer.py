@@ -43,8 +43,8 @@ core would output had the measurement been exactly the prediction::
 its prediction and its innovation by zero; both read the same hidden state, and the hidden
 state moves on with ``z_k``. At ``c = 1`` a zero innovation moves nothing but the prior, as in
 every filter's update: with exact readings the truth is a fixed point whatever the network
-remembers. A ``c`` below 1 is the way there from an observer trained without it (its weights
-load unchanged; fine-tune in stages of growing ``c``). The core runs on twice the batch.
+remembers. A ``c`` below 1 keeps part of the offset a trained observer relies on (its weights
+load unchanged at any ``c``). The core runs on twice the batch.
 
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
