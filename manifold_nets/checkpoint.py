@@ -219,8 +219,7 @@ def load_weights(
     path = resolve_checkpoint(where, name="best.pt")
     ckpt = load_checkpoint(path, map_location=map_location)
     found = ckpt["signature"]
-    if widen_gain and "centering" in {**found, **model.signature()}:
-        # the centred update adds no weight: the same ones load at any other centering
+    if widen_gain:  # the centred update adds no weight: the same ones load at any centering
         found = {k: v for k, v in found.items() if k != "centering"}
         if getattr(model, "centering", 0.0):
             found["centering"] = model.centering

@@ -347,21 +347,16 @@ class ResidualObserver(nn.Module):
             self._rotated.append((group.element_slice(name), slice(at, at + 3 * len(spans))))
             at += 3 * len(spans)
         self._dt = inputs.dt
-        # where each innovation factor's measured columns sit in the core's context (None: read
-        # only through its innovation), for the centred update's zero-innovation inputs
-        keep = self._keep_context
-        self._measured_in_context = []
-        for name, (a, b) in inputs.innovation.items():
-            if keep is None:
-                pos = list(range(a, b))
-            elif name in inputs.relative_only:
-                pos = None
-            else:
-                kept = keep.tolist()
-                pos = [kept.index(c) for c in range(a, b)]
-            if pos is not None and pos == list(range(pos[0], pos[0] + len(pos))):
-                pos = slice(pos[0], pos[0] + len(pos))  # the usual case: one block, no gather
-            self._measured_in_context.append(pos)
+        # where each innovation factor's measured columns sit in the core's context, for the
+        # centred update (None: read only through its innovation); only whole relative-only
+        # spans leave the context, so a kept span stays one block
+        kept = None if self._keep_context is None else self._keep_context.tolist()
+        self._measured_in_context = [
+            None if name in inputs.relative_only
+            else slice(a, b) if kept is None
+            else slice(kept.index(a), kept.index(a) + b - a)
+            for name, (a, b) in inputs.innovation.items()
+        ]
 
     def _context(self, full: torch.Tensor) -> torch.Tensor:
         """The core's context from the whole ``(..., l + m)`` ``(y, u)``: the kept columns, then
@@ -571,17 +566,19 @@ class ResidualObserver(nn.Module):
             f.rminus(m, x[:, xs].unflatten(-1, f.element_shape)).to(net)
             for (f, xs, _), m in zip(self._innov, measured)
         ]
-        parts = [e.to(net), context, *innovation]
+        e = e.to(net)
+        rotated = []
         for xs, cols in self._rotated:  # world-frame vectors R v of body-frame v
             R = x[:, xs].unflatten(-1, (3, 3)).to(net)
             vecs = extra[:, cols].unflatten(-1, (-1, 3))
-            parts.append((vecs @ R.transpose(-1, -2)).flatten(-2))
-        inp = torch.cat(parts, dim=-1)
+            rotated.append((vecs @ R.transpose(-1, -2)).flatten(-2))
+        inp = torch.cat([e, context, *innovation, *rotated], dim=-1)
         if self.centering:  # v = T(z) - c T(z^0): one core step on both, the hidden state from z
             b = inp.shape[0]
+            zero = [torch.zeros_like(i) for i in innovation]
+            z0 = torch.cat([e, self._measured_at(x, context), *zero, *rotated], dim=-1)
             out, hidden = self.core.step(
-                torch.cat((inp, self._zero_innovation(inp, x, e.shape[-1]))),
-                tuple(torch.cat((h, h)) for h in hidden),
+                torch.cat((inp, z0)), tuple(torch.cat((h, h)) for h in hidden)
             )
             hidden = tuple(h[:b] for h in hidden)
             v = out[:b]
@@ -594,28 +591,20 @@ class ResidualObserver(nn.Module):
             kv = (gain @ nu.unsqueeze(-1)).squeeze(-1)
             v = v[:, :n] + kv if self.offset else kv
         if self.centering:  # at z^0 the innovation is zero: the gain head's K nu drops out
-            v0 = out[b:, : self.group.tangent_dim]
-            v = v - (v0 if self.centering == 1.0 else self.centering * v0)
+            v = v - self.centering * out[b:, : self.group.tangent_dim]
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
 
-    def _zero_innovation(self, inp: torch.Tensor, x: torch.Tensor, at: int) -> torch.Tensor:
-        """The core's input ``z^0`` from ``z`` (``inp``): each innovation factor measured at its
-        prediction ``x`` (its columns of the context, from column ``at``, set to the
-        prediction's embedding) and its innovation zero."""
-        z0 = inp.clone()
-        for (f, xs, _), pos in zip(self._innov, self._measured_in_context):
-            if pos is not None:
+    def _measured_at(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
+        """``context`` with each innovation factor's measured columns set to the embedding of
+        its prediction in ``x``: the context of ``z^0``, the measurement exactly predicted."""
+        context = context.clone()
+        for (f, xs, _), cols in zip(self._innov, self._measured_in_context):
+            if cols is not None:
                 pred = f.embed(x[:, xs].unflatten(-1, f.element_shape))
-                cols = (
-                    slice(at + pos.start, at + pos.stop) if isinstance(pos, slice)
-                    else [at + i for i in pos]
-                )
-                z0[:, cols] = pred.reshape(x.shape[0], -1).to(inp.dtype)
-        start = inp.shape[-1] - self._innov_dim - self.inputs.rotated_dim()
-        z0[:, start : start + self._innov_dim] = 0
-        return z0
+                context[:, cols] = pred.reshape(x.shape[0], -1).to(context.dtype)
+        return context
 
     def _predict(self, x: torch.Tensor, extra: torch.Tensor) -> torch.Tensor:
         """The kinematic prior: each ``propagate`` factor moved by ``dt`` times its velocity."""

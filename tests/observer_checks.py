@@ -1,11 +1,14 @@
 """Shared test helpers for observer options: rollout = online = exported step; a tiny train
-command run loaded back."""
+command run loaded back; a small SO(3) dataset."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 import torch
+
+from groups import SO3
+from manifold_nets.data import TrajectoryDataset
 
 
 def assert_online_matches_rollout(obs, measurements: torch.Tensor, atol: float = 1e-12):
@@ -44,3 +47,19 @@ def train_tiny_and_load(experiment: str, tmp_path, *more: str):
         cfg = compose("train", overrides=overrides)
     run(cfg, tmp_path / "run")
     return load_observer(tmp_path / "run")
+
+
+def so3_walk(n: int, t: int, seed: int) -> TrajectoryDataset:
+    """A random walk on SO(3) from the identity, ``n`` sequences of ``t`` steps, measured
+    (``vec R``) at noise levels 0 .. 0.5 (one per sequence)."""
+    G = SO3()
+    g = torch.Generator().manual_seed(seed)
+    steps = G.exp(0.2 * torch.randn(n, t, 3, generator=g, dtype=torch.float64))
+    states = [G.identity((n,), dtype=torch.float64)]
+    for k in range(t):
+        states.append(G.compose(states[-1], steps[:, k]))
+    states = torch.stack(states, 1)
+    sigma = torch.linspace(0.0, 0.5, n, dtype=torch.float64).reshape(n, 1, 1)
+    noise = torch.randn(n, t, 9, generator=g, dtype=torch.float64)
+    meas = states[:, 1:].flatten(-2) + sigma * noise
+    return TrajectoryDataset(states, meas, torch.zeros(n, t, 0, dtype=torch.float64), {})

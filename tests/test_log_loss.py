@@ -13,10 +13,10 @@ from hydra import compose, initialize_config_dir
 
 from groups import SO3
 from manifold_nets import TrainSettings
-from manifold_nets.data import TrajectoryDataset
 from manifold_nets.losses import LOG_MSE_EPS, embedding_log_mse, embedding_mse, sequence_mse
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.training import LOSSES, check_settings, fit, validation_loss
+from tests.observer_checks import so3_walk
 
 G = SO3()
 ROOT = Path(__file__).resolve().parents[1]
@@ -108,23 +108,9 @@ def test_an_unknown_loss_is_refused_naming_the_choices():
         check_settings(TrainSettings(loss="l1"))
 
 
-def _data(n, t, seed):
-    """A random walk from the identity, measured at noise levels 0 .. 0.5 (one per sequence)."""
-    g = torch.Generator().manual_seed(seed)
-    steps = G.exp(0.2 * torch.randn(n, t, 3, generator=g, dtype=torch.float64))
-    states = [G.identity((n,), dtype=torch.float64)]
-    for k in range(t):
-        states.append(G.compose(states[-1], steps[:, k]))
-    states = torch.stack(states, 1)
-    sigma = torch.linspace(0.0, 0.5, n, dtype=torch.float64).reshape(n, 1, 1)
-    noise = torch.randn(n, t, 9, generator=g, dtype=torch.float64)
-    meas = states[:, 1:].flatten(-2) + sigma * noise
-    return TrajectoryDataset(states, meas, torch.zeros(n, t, 0, dtype=torch.float64), {})
-
-
 @pytest.mark.parametrize("tbptt", [None, 4])
 def test_fit_trains_and_validates_on_the_log_loss(tmp_path, tbptt):
-    train, val = _data(12, 12, 1), _data(6, 12, 2)
+    train, val = so3_walk(12, 12, 1), so3_walk(6, 12, 2)
     torch.manual_seed(0)
     model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
     before = validation_loss(model, val, loss="log_mse")

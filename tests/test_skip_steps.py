@@ -16,30 +16,18 @@ from hydra import compose, initialize_config_dir
 
 from groups import SO3
 from manifold_nets import TrainSettings
-from manifold_nets.data import TrajectoryDataset
 from manifold_nets.losses import embedding_log_mse, embedding_mse
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.training import TrainingDiverged, check_settings, fit, validation_loss
+from tests.observer_checks import so3_walk
 
 G = SO3()
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def walk(n, t, seed):
-    """A random walk on SO(3) from the identity, measured with noise 0.1."""
-    g = torch.Generator().manual_seed(seed)
-    steps = G.exp(0.2 * torch.randn(n, t, 3, generator=g, dtype=torch.float64))
-    states = [G.identity((n,), dtype=torch.float64)]
-    for k in range(t):
-        states.append(G.compose(states[-1], steps[:, k]))
-    states = torch.stack(states, 1)
-    meas = states[:, 1:].flatten(-2) + 0.1 * torch.randn(n, t, 9, generator=g, dtype=torch.float64)
-    return TrajectoryDataset(states, meas, torch.zeros(n, t, 0, dtype=torch.float64), {})
-
-
 @pytest.mark.parametrize(("loss", "fn"), [("mse", embedding_mse), ("log_mse", embedding_log_mse)])
 def test_the_validation_loss_leaves_the_first_steps_out(loss, fn):
-    data = walk(6, 12, 1)
+    data = so3_walk(6, 12, 1)
     torch.manual_seed(0)
     model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
     with torch.no_grad():
@@ -53,9 +41,9 @@ def test_the_validation_loss_leaves_the_first_steps_out(loss, fn):
 
 
 def poisoned(n, t, seed, upto):
-    """``walk`` with the true states of steps 1 .. upto-1 replaced by NaN: any loss or gradient
+    """``so3_walk`` with the true states of steps 1 .. upto-1 replaced by NaN: any loss or gradient
     that reads them is NaN."""
-    data = walk(n, t, seed)
+    data = so3_walk(n, t, seed)
     data.states[:, 1:upto] = float("nan")
     return data
 
