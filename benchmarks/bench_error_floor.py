@@ -22,7 +22,6 @@ import torch
 
 import manifold_nets_examples.rigid_body  # noqa: F401  (registers the systems)
 from manifold_nets import load_observer
-from manifold_nets.observer import ObserverState
 
 SIGMAS = (0.0, 0.1, 0.3)
 
@@ -36,7 +35,7 @@ def floor_rows(label: str, run: str, n: int = 200, t: int = 1000, seed: int = 5)
         for start in ("identity", "truth"):
             state = obs.init_state(n)
             if start == "truth":
-                state = ObserverState(data.states[:, 0].clone(), state.hidden)
+                state = state._replace(estimate=data.states[:, 0].clone())
             with torch.inference_mode():
                 est = obs(data.measurements, state=state)
             r = (est[..., :9] - data.states[..., :9]).norm(dim=-1)
@@ -59,7 +58,7 @@ def reset_errors(obs, data, k: int, after: tuple[int, ...] = (1, 10)) -> list[fl
     ``k``, the hidden state that of the run from the identity up to ``k``."""
     with torch.inference_mode():
         _, state = obs(data.measurements[:, :k], return_state=True)
-        state = ObserverState(data.states[:, k].clone(), state.hidden)
+        state = state._replace(estimate=data.states[:, k].clone())
         est = obs(data.measurements[:, k:], state=state)
     b = (est[..., 12:15] - data.states[:, k:, 12:15]).norm(dim=-1)
     return [float(b[:, j].mean()) for j in after]

@@ -127,7 +127,7 @@ def build_observer(
         dt=dt,
     )
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)
-    gain, offset, centering = _update_form(model, inputs)
+    gain, offset, centering, ramp = _update_form(model, inputs)
     core_cls = _core_class(model.core, import_core)
     core = core_cls(
         in_size,
@@ -156,13 +156,14 @@ def build_observer(
         gain=gain,
         offset=offset,
         centering=centering,
+        centering_ramp=ramp,
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 
 
-def _update_form(model: ModelConfig | Any, inputs: ObserverInputs) -> tuple[bool, bool, float]:
-    """``model.gain``, ``model.gain_offset`` and ``model.centering``, checked against each other
-    and the inputs."""
+def _update_form(model: ModelConfig | Any, inputs: ObserverInputs) -> tuple[bool, bool, float, int]:
+    """``model.gain``, ``model.gain_offset``, ``model.centering`` and ``model.centering_ramp``,
+    checked against each other and the inputs."""
     gain = getattr(model, "gain", False)
     if not isinstance(gain, bool):
         raise ValueError(f"model.gain must be true or false, got {gain!r}.")
@@ -188,7 +189,15 @@ def _update_form(model: ModelConfig | Any, inputs: ObserverInputs) -> tuple[bool
             "model.innovation is empty; name the measured factors there (e.g. {R: [0, 9], "
             "p: [9, 12]}) or set model.centering=0."
         )
-    return gain, offset, float(centering)
+    ramp = getattr(model, "centering_ramp", 0)
+    if isinstance(ramp, bool) or not isinstance(ramp, int) or ramp < 0:
+        raise ValueError(f"model.centering_ramp must be an integer >= 0 (steps), got {ramp!r}.")
+    if ramp and not centering:
+        raise ValueError(
+            f"model.centering_ramp={ramp} ramps in the centred update, but model.centering is 0; "
+            "set model.centering (0 < c <= 1) or model.centering_ramp=0."
+        )
+    return gain, offset, float(centering), ramp
 
 
 #: The values of ``model.prior``.

@@ -38,6 +38,8 @@ __all__ = [
 ]
 
 FORMAT = "manifold_nets.checkpoint/1"
+#: The signature's keys of the centred update, which adds no weight (``train.init_from``).
+_CENTRING = ("centering", "centering_ramp")
 
 
 class CheckpointError(ValueError):
@@ -212,7 +214,8 @@ def load_weights(
     With ``widen_gain`` (``train.init_from``) the checkpoint of an observer without the gain
     head also loads into the same observer with one, which then starts out computing what the
     checkpoint's does (``ResidualObserver.state_with_gain``: ``K = 0``), and the checkpoint of
-    an observer with another ``centering`` (the centred update; the same weights).
+    an observer with another ``centering`` or ``centering_ramp`` (the centred update; the same
+    weights).
 
     Returns the file and the checkpoint's contents.
     """
@@ -220,9 +223,9 @@ def load_weights(
     ckpt = load_checkpoint(path, map_location=map_location)
     found = ckpt["signature"]
     if widen_gain:  # the centred update adds no weight: the same ones load at any centering
-        found = {k: v for k, v in found.items() if k != "centering"}
-        if getattr(model, "centering", 0.0):
-            found["centering"] = model.centering
+        found = {k: v for k, v in found.items() if k not in _CENTRING}
+        own = model.signature()
+        found.update({k: own[k] for k in _CENTRING if k in own})
     if widen_gain and getattr(model, "gain", False) and not found.get("gain"):
         ckpt = {**ckpt, "model": model.state_with_gain(ckpt["model"], found, where=str(path))}
     else:

@@ -112,6 +112,10 @@ class ModelConfig:
     #: (needs ``innovation``). At 1 a zero innovation moves nothing but the prior. It adds no
     #: weight (``train.init_from`` starts it from any other value). 0: none.
     centering: float = 0.0
+    #: The centring ramps in over the first this many steps, ``c_k = c min(1, k / K)``: the
+    #: start-up, where the network pulls large errors in through its memory, stays uncentred
+    #: (needs ``centering``). 0: the full ``c`` from the first step.
+    centering_ramp: int = 0
     #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
     output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).

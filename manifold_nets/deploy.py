@@ -21,7 +21,9 @@ The step's tensors: ``x`` ``(B, numel)`` the flattened estimate in the state dty
 the core's state, each ``(B, ...)`` in the network dtype; ``y`` ``(B, measurement_dim)`` in the
 state dtype (the measured factors of innovation inputs are read in it; the network reads ``y``
 cast to its dtype); ``u`` ``(B, input_dim)`` in the network dtype, only when ``input_dim > 0``.
-It returns ``(x_next, *hidden_next)``, the same values as :meth:`ResidualObserver.step`.
+It returns ``(x_next, *hidden_next)``, the same values as :meth:`ResidualObserver.step`. An
+observer with a centring ramp (``centering_ramp=K``) has one more state tensor after the hidden
+ones, ``steps`` ``(B,)`` in the network dtype: the steps taken, which stops counting at ``K``.
 """
 
 from __future__ import annotations
@@ -55,12 +57,22 @@ class OnlineStep(nn.Module):
     def __init__(self, observer: ResidualObserver):
         super().__init__()
         self.observer = observer
-        self.num_hidden = len(observer.core.initial_hidden(1))
+        #: a centring ramp needs the step count: one more state tensor, ``steps`` ``(B,)``
+        self.clock = bool(observer.centering_ramp)
+        self.num_hidden = len(observer.core.initial_hidden(1)) + self.clock
+
+    def state_names(self) -> list[str]:
+        """The names of the state tensors after ``x``: ``hidden0, ..`` and ``steps`` (a ramp)."""
+        names = [f"hidden{i}" for i in range(self.num_hidden - self.clock)]
+        return names + (["steps"] if self.clock else [])
 
     def initial_state(self, batch: int = 1) -> tuple[torch.Tensor, ...]:
-        """``(x, *hidden)`` before the first step: the identity and the core's initial state."""
-        x, hidden = self.observer.init_state(batch)
-        return (x.reshape(batch, -1), *hidden)
+        """``(x, *hidden)`` before the first step: the identity and the core's initial state (and
+        the step count, 0, with a centring ramp)."""
+        obs = self.observer
+        x, hidden, _ = obs.init_state(batch)
+        steps = (torch.zeros(batch, dtype=obs.net_dtype, device=obs.device),) if self.clock else ()
+        return (x.reshape(batch, -1), *hidden, *steps)
 
     def example_inputs(self, batch: int = 1) -> tuple[torch.Tensor, ...]:
         """Arguments of the right shapes and dtypes for tracing (the initial state, zero y, u)."""
@@ -82,10 +94,16 @@ class OnlineStep(nn.Module):
         net = obs.net_dtype
         context = y.to(net) if not obs.input_dim else torch.cat((y.to(net), args[-1].to(net)), -1)
         u = args[-1] if obs.input_dim else None
+        c, clock = None, ()
+        if self.clock:  # c_k = c min(1, k / K) per sequence; the count stops at K
+            hidden, k = hidden[:-1], hidden[-1]
+            ramp = obs.centering_ramp
+            c = obs.centering * (k / ramp).clamp(max=1.0).unsqueeze(-1)
+            clock = ((k + 1).clamp(max=ramp),)
         x, hidden = obs._step(
-            x, hidden, obs._context(context), obs._measured(y), obs._readings(y, u)
+            x, hidden, obs._context(context), obs._measured(y), obs._readings(y, u), c
         )
-        return (x, *hidden)
+        return (x, *hidden, *clock)
 
 
 def _meta(step: OnlineStep, batch: int | None) -> dict[str, Any]:
@@ -99,7 +117,7 @@ def _meta(step: OnlineStep, batch: int | None) -> dict[str, Any]:
         "measurement_dim": obs.measurement_dim,
         "input_dim": obs.input_dim,
         "batch": batch,
-        "inputs": ["x"] + [f"hidden{i}" for i in range(step.num_hidden)] + ["y"]
+        "inputs": ["x", *step.state_names(), "y"]
         + (["u"] if obs.input_dim else []),
         "initial_state": [t[0].tolist() for t in step.initial_state(1)],
     }
@@ -169,7 +187,8 @@ def load_exported_step(path: str | os.PathLike) -> ExportedStep:
 def export_onnx(observer: ResidualObserver, path: str | os.PathLike, batch: int = 1) -> Path:
     """Writes ``observer``'s online step as an ONNX model (``torch.onnx.export(dynamo=True)``).
 
-    Inputs and outputs are named ``x, hidden0.., y[, u]`` and ``x_next, hidden0_next, ..``.
+    Inputs and outputs are named ``x, hidden0.., [steps,] y[, u]`` and ``x_next, hidden0_next,
+    ..`` (``steps``: the step count of a centring ramp).
     Needs ``onnx`` and ``onnxscript`` (``pip install manifold_nets[export]``).
     """
     try:
@@ -181,7 +200,7 @@ def export_onnx(observer: ResidualObserver, path: str | os.PathLike, batch: int 
         ) from None
     step = OnlineStep(observer).eval()
     names = _meta(step, batch)["inputs"]
-    outputs = ["x_next"] + [f"hidden{i}_next" for i in range(step.num_hidden)]
+    outputs = ["x_next"] + [f"{name}_next" for name in step.state_names()]
     with torch.no_grad():
         program = torch.onnx.export(
             step, step.example_inputs(batch), dynamo=True, input_names=names,

@@ -44,7 +44,9 @@ its prediction and its innovation by zero; both read the same hidden state, and 
 state moves on with ``z_k``. At ``c = 1`` a zero innovation moves nothing but the prior, as in
 every filter's update: with exact readings the truth is a fixed point whatever the network
 remembers. A ``c`` below 1 keeps part of the offset a trained observer relies on (its weights
-load unchanged at any ``c``). The core runs on twice the batch.
+load unchanged at any ``c``). The core runs on twice the batch. ``centering_ramp=K`` raises
+``c`` linearly over the first ``K`` steps (``c_k = c min(1, k / K)``), so the start-up stays
+uncentred; :attr:`ObserverState.steps` counts the steps.
 
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
@@ -154,11 +156,25 @@ def core_output_size(
 # ---------------------------------------------------------------------- the observer
 
 
+def _check_output_scale(output_scale: float) -> float:
+    if (
+        isinstance(output_scale, bool) or not isinstance(output_scale, (int, float))
+        or not 0 < output_scale < math.inf
+    ):
+        raise ValueError(
+            f"ResidualObserver: output_scale must be a positive number, got {output_scale!r}."
+        )
+    return float(output_scale)
+
+
 class ObserverState(NamedTuple):
-    """The online state: the estimate ``(B, *element_shape)`` and the core's hidden state."""
+    """The online state: the estimate ``(B, *element_shape)``, the core's hidden state, and the
+    number of steps taken from the start (the clock of the centring ramp, ``centering_ramp``;
+    one count for the whole batch)."""
 
     estimate: torch.Tensor
     hidden: Hidden
+    steps: int = 0
 
 
 class ResidualObserver(nn.Module):
@@ -196,6 +212,10 @@ class ResidualObserver(nn.Module):
             times what it outputs when each innovation factor is measured exactly where it is
             predicted (see the module docstring; needs ``inputs.innovation``; default 0, none).
             It adds no weight: ``train.init_from`` starts it from any other ``c``.
+        centering_ramp: ``K``, an integer >= 0: the centring ramps in over the first ``K`` steps,
+            ``c_k = c min(1, k / K)`` at the step from ``x_k`` (default 0: ``c`` from the
+            first step). The start-up, where the network pulls large errors in through its
+            memory, stays uncentred; ``ObserverState.steps`` is its clock.
     """
 
     def __init__(
@@ -216,6 +236,7 @@ class ResidualObserver(nn.Module):
         gain: bool = False,
         offset: bool = True,
         centering: float = 0.0,
+        centering_ramp: int = 0,
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -232,14 +253,7 @@ class ResidualObserver(nn.Module):
             raise TypeError(
                 f"state_dtype must be torch.float32 or torch.float64, got {state_dtype}."
             )
-        if (
-            isinstance(output_scale, bool) or not isinstance(output_scale, (int, float))
-            or not 0 < output_scale < math.inf
-        ):
-            raise ValueError(
-                f"ResidualObserver: output_scale must be a positive number, got {output_scale!r}."
-            )
-        self.output_scale = float(output_scale)
+        self.output_scale = _check_output_scale(output_scale)
         inputs = ObserverInputs() if inputs is None else inputs
         if not isinstance(inputs, ObserverInputs):
             raise TypeError(f"inputs must be an ObserverInputs, got {type(inputs).__name__}.")
@@ -260,7 +274,8 @@ class ResidualObserver(nn.Module):
             )
         self.prior = prior
         self.prior_name = str(prior_name) if prior is not None else None
-        self.gain, self.offset, self.centering = self._check_form(gain, offset, centering)
+        form = self._check_form(gain, offset, centering, centering_ramp)
+        self.gain, self.offset, self.centering, self.centering_ramp = form
         self._innov_dim = self.inputs.innovation_dim(group)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
@@ -295,11 +310,14 @@ class ResidualObserver(nn.Module):
             )
         return gain, offset
 
-    def _check_form(self, gain: bool, offset: bool, centering: float) -> tuple[bool, bool, float]:
-        """The update's form (gain head, its offset, centering), checked against each other and
-        the inputs."""
+    def _check_form(
+        self, gain: bool, offset: bool, centering: float, ramp: int
+    ) -> tuple[bool, bool, float, int]:
+        """The update's form (gain head, its offset, centering and its ramp), checked against
+        each other and the inputs."""
         self.gain, self.offset = self._check_gain(gain, offset)
-        return self.gain, self.offset, self._check_centering(centering)
+        self.centering = self._check_centering(centering)
+        return self.gain, self.offset, self.centering, self._check_ramp(ramp)
 
     def _check_centering(self, centering: float) -> float:
         if (
@@ -321,6 +339,25 @@ class ResidualObserver(nn.Module):
                 "update is already zero at zero innovation; set centering to 0."
             )
         return float(centering)
+
+    def _check_ramp(self, ramp: int) -> int:
+        if isinstance(ramp, bool) or not isinstance(ramp, int) or ramp < 0:
+            raise ValueError(
+                f"ResidualObserver: centering_ramp must be an integer >= 0 (steps), got {ramp!r}."
+            )
+        if ramp and not self.centering:
+            raise ValueError(
+                f"centering_ramp={ramp} ramps in the centred update, but centering is 0; set "
+                "centering (0 < c <= 1) or the ramp to 0."
+            )
+        return ramp
+
+    def centering_at(self, k: int) -> float:
+        """``c_k``, the centring of the step from ``x_k`` (``k`` steps taken): ``centering``,
+        ramped in over the first ``centering_ramp`` steps."""
+        if k >= self.centering_ramp:
+            return self.centering
+        return self.centering * k / self.centering_ramp
 
     def _zero_gain(self, core: GRUCore) -> None:
         """``K`` starts at zero: the untrained observer is the prior plus a bounded offset, not a
@@ -446,6 +483,7 @@ class ResidualObserver(nn.Module):
             **({"gain": True} if self.gain else {}),
             **({"offset": False} if not self.offset else {}),
             **({"centering": self.centering} if self.centering else {}),
+            **({"centering_ramp": self.centering_ramp} if self.centering_ramp else {}),
         }
 
     def state_with_gain(self, state: dict, signature: dict, where: str = "checkpoint") -> dict:
@@ -541,14 +579,16 @@ class ResidualObserver(nn.Module):
         return torch.cat([p.to(device=self.device, dtype=self.state_dtype) for p in parts], -1)
 
     def _step(
-        self, x: torch.Tensor, hidden: Hidden, context: torch.Tensor, measured=(), readings=None
+        self, x: torch.Tensor, hidden: Hidden, context: torch.Tensor, measured=(), readings=None,
+        centering=None,
     ):
         """One unchecked step.
 
         ``x``: the flat state ``(B, numel)`` in the state dtype; ``context``: ``(B, l + m)`` in the
         network dtype (less the relative-only columns); ``measured``: the step's measured factor
         elements (innovation only); ``readings``: the step's ``(y, u)`` ``(B, l + m)`` in the
-        state dtype (model prior only).
+        state dtype (model prior only); ``centering``: the step's ``c_k`` (a number or a 0-d
+        tensor; default ``self.centering``; read only when the observer is centred).
         """
         net = context.dtype
         if self.prior is not None:
@@ -591,7 +631,8 @@ class ResidualObserver(nn.Module):
             kv = (gain @ nu.unsqueeze(-1)).squeeze(-1)
             v = v[:, :n] + kv if self.offset else kv
         if self.centering:  # at z^0 the innovation is zero: the gain head's K nu drops out
-            v = v - self.centering * out[b:, : self.group.tangent_dim]
+            c = self.centering if centering is None else centering
+            v = v - c * out[b:, : self.group.tangent_dim]
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
@@ -712,8 +753,10 @@ class ResidualObserver(nn.Module):
             context,
             self._measured(y),
             self._readings(y, u),
+            self.centering_at(state.steps),
         )
-        return ObserverState(x.view(x.shape[0], *self.group.element_shape), hidden)
+        shape = self.group.element_shape
+        return ObserverState(x.view(x.shape[0], *shape), hidden, state.steps + 1)
 
     def forward(
         self,
@@ -758,10 +801,16 @@ class ResidualObserver(nn.Module):
         step = self._step
         if self._compiled_step is not None and torch.is_grad_enabled():
             step = self._compiled_step
-        for c, m, r in zip(steps, measured, readings):
-            x, hidden = step(x, hidden, c, m, r)
+        k0 = state.steps
+        for k, (c, m, r) in enumerate(zip(steps, measured, readings), start=k0):
+            if k < self.centering_ramp:  # a 0-d tensor: one compiled graph for every c_k
+                ramp = torch.tensor(self.centering_at(k), dtype=c.dtype, device=c.device)
+                x, hidden = step(x, hidden, c, m, r, ramp)
+            else:
+                x, hidden = step(x, hidden, c, m, r)
             xs.append(x)
         est = torch.stack(xs, dim=1).unflatten(-1, self.group.element_shape)
         if return_state:
-            return est, ObserverState(x.view(n, *self.group.element_shape), hidden)
+            shape = self.group.element_shape
+            return est, ObserverState(x.view(n, *shape), hidden, k0 + len(steps))
         return est

@@ -607,8 +607,8 @@ class _Trainer:
                 return value
             total += value * piece.length
             steps += piece.length
-            state = ObserverState(
-                state.estimate.detach(), tuple(h.detach() for h in state.hidden)
+            state = state._replace(
+                estimate=state.estimate.detach(), hidden=tuple(h.detach() for h in state.hidden)
             )
         return total / steps
 
