@@ -189,6 +189,13 @@ def _update_form(model: ModelConfig | Any, inputs: ObserverInputs) -> tuple[bool
             "model.innovation is empty; name the measured factors there (e.g. {R: [0, 9], "
             "p: [9, 12]}) or set model.centering=0."
         )
+    if centering and (getattr(model, "prior", "none") or "none") == "none" and not inputs.propagate:
+        raise ValueError(
+            "model.centering subtracts the core's output at the measurement its prediction "
+            "expects, but the observer has no prediction (model.prior=none, no model.propagate): "
+            "then that output is the motion itself, and centring takes it away. Set "
+            "model.prior=system (model=small_relative_prior) or model.centering=0."
+        )
     ramp = getattr(model, "centering_ramp", 0)
     if isinstance(ramp, bool) or not isinstance(ramp, int) or ramp < 0:
         raise ValueError(f"model.centering_ramp must be an integer >= 0 (steps), got {ramp!r}.")

@@ -333,6 +333,13 @@ class ResidualObserver(nn.Module):
                 "none; give inputs.innovation ({factor: (start, stop)} in y, model.innovation) "
                 "or set centering to 0."
             )
+        if centering and self.prior is None and not self.inputs.propagate:
+            raise ValueError(
+                "centering subtracts the core's output at the measurement its prediction expects, "
+                "but the observer has no prediction (no prior, no inputs.propagate): then that "
+                "output is the motion itself, and centring takes it away. Give a prior (e.g. "
+                "prior=system.predict) or set centering to 0."
+            )
         if centering and self.gain and not self.offset:
             raise ValueError(
                 "centering with the gain head and no offset (v = K nu) changes nothing: that "

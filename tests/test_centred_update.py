@@ -76,7 +76,9 @@ def test_the_update_is_the_core_less_its_output_at_the_predicted_measurement():
     z0 = torch.cat([x, x, torch.zeros_like(nu)], dim=-1)
     for c in (1.0, 0.3):
         core = ReadingCore(in_size, W)
-        obs = ResidualObserver(group, 12, core=core, inputs=inputs, centering=c)
+        obs = ResidualObserver(  # a prior that predicts no motion: the innovation is against x
+            group, 12, core=core, inputs=inputs, centering=c, prior=lambda x, y, u: x
+        )
         new = obs.step(ObserverState(x, core.initial_hidden(5)), m).estimate
         v = z @ W.T - c * (z0 @ W.T)
         want_R = so3.rplus(x[:, :9].unflatten(-1, (3, 3)), v[:, :3]).flatten(1)
@@ -183,6 +185,13 @@ def test_bad_centering_says_what_is_wrong():
         ResidualObserver(system.group, 18, hidden_size=4, num_layers=1, centering=1.0)
     with pytest.raises(ValueError, match="already zero at zero innovation"):
         rigid_observer(system, gain=True, gain_offset=False)
+    # no prediction: the output at zero innovation is the motion itself (session 13 measured it:
+    # session 6's outlier observer, no prior, at c = 0.7 went from a validation loss of -4.9 to 1.0)
+    with pytest.raises(ValueError, match=r"no prediction \(model.prior=none"):
+        rigid_observer(system, prior="none")
+    inputs = ObserverInputs({"R": (0, 9), "p": (9, 12)}, ("p",))
+    with pytest.raises(ValueError, match="no prediction"):
+        ResidualObserver(system.group, 18, hidden_size=4, num_layers=1, inputs=inputs, centering=1)
 
 
 def test_the_train_command_trains_it_and_load_observer_rebuilds_it(tmp_path):
