@@ -34,8 +34,9 @@ the estimate converges; a bias corrected in proportion to the attitude innovatio
 linear in what the core computes, where a plain head must produce ``K nu`` through its
 nonlinearities.
 
-A *centred* update (``centering=c``, ``0 < c <= 1``, needs innovation inputs) subtracts what the
-core would output had the measurement been exactly the prediction::
+A *centred* update (``centering=c``, ``0 < c <= 1``, needs innovation inputs and a prediction:
+a ``prior`` or ``inputs.propagate``) subtracts what the core would output had the measurement been
+exactly the prediction::
 
     v_k = T(z_k) - c T(z_k^0)
 

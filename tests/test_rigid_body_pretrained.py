@@ -29,6 +29,7 @@ NAMES = [
     "mismatch_correlated_prior_bptt1000_mse",
     "mismatch_sensor_prior_log_bptt1000",
     "mismatch_outliers_long_bptt1000_log",
+    "mismatch_outliers_long_bptt1000_log_skip10",
 ]
 
 
