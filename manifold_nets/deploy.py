@@ -97,9 +97,8 @@ class OnlineStep(nn.Module):
         c, clock = None, ()
         if self.clock:  # c_k = c min(1, k / K) per sequence; the count stops at K
             hidden, k = hidden[:-1], hidden[-1]
-            ramp = obs.centering_ramp
-            c = obs.centering * (k / ramp).clamp(max=1.0).unsqueeze(-1)
-            clock = ((k + 1).clamp(max=ramp),)
+            c = obs.centering_at(k).unsqueeze(-1)
+            clock = ((k + 1).clamp(max=obs.centering_ramp),)
         x, hidden = obs._step(
             x, hidden, obs._context(context), obs._measured(y), obs._readings(y, u), c
         )

@@ -360,12 +360,16 @@ class ResidualObserver(nn.Module):
             )
         return ramp
 
-    def centering_at(self, k: int) -> float:
+    def centering_at(self, k):
         """``c_k``, the centring of the step from ``x_k`` (``k`` steps taken): ``centering``,
-        ramped in over the first ``centering_ramp`` steps."""
-        if k >= self.centering_ramp:
+        ramped in over the first ``centering_ramp`` steps. ``k`` an integer, or with a ramp a
+        floating tensor of step counts (then ``c_k`` is a tensor of its shape)."""
+        ramp = self.centering_ramp
+        if not ramp:
             return self.centering
-        return self.centering * k / self.centering_ramp
+        if isinstance(k, torch.Tensor):
+            return self.centering * (k / ramp).clamp(max=1.0)
+        return self.centering * min(1.0, k / ramp)
 
     def _zero_gain(self, core: GRUCore) -> None:
         """``K`` starts at zero: the untrained observer is the prior plus a bounded offset, not a
@@ -810,12 +814,12 @@ class ResidualObserver(nn.Module):
         if self._compiled_step is not None and torch.is_grad_enabled():
             step = self._compiled_step
         k0 = state.steps
-        for k, (c, m, r) in enumerate(zip(steps, measured, readings), start=k0):
-            if k < self.centering_ramp:  # a 0-d tensor: one compiled graph for every c_k
-                ramp = torch.tensor(self.centering_at(k), dtype=c.dtype, device=c.device)
-                x, hidden = step(x, hidden, c, m, r, ramp)
-            else:
-                x, hidden = step(x, hidden, c, m, r)
+        ramp = ()  # c_k of the steps inside the ramp, as 0-d tensors: one compiled graph for all
+        if k0 < self.centering_ramp:
+            ks = torch.arange(k0, min(k0 + len(steps), self.centering_ramp), dtype=torch.float64)
+            ramp = self.centering_at(ks).to(context).unbind(0)
+        for i, (c, m, r) in enumerate(zip(steps, measured, readings)):
+            x, hidden = step(x, hidden, c, m, r, *ramp[i : i + 1])
             xs.append(x)
         est = torch.stack(xs, dim=1).unflatten(-1, self.group.element_shape)
         if return_state:

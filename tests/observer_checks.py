@@ -30,13 +30,11 @@ def assert_online_matches_rollout(obs, measurements: torch.Tensor, atol: float =
     return est
 
 
-def train_tiny_and_load(experiment: str, tmp_path, *more: str):
+def run_tiny(experiment: str, tmp_path, out, *more: str):
     """Runs the train command on ``experiment`` with ``debug=tiny`` (and the overrides ``more``)
-    into ``tmp_path / "run"`` and loads the result back: ``(observer, system, config)`` from
-    ``manifold_nets.load_observer``."""
+    into ``out``, its datasets cached under ``tmp_path / "data"``. Returns the composed config."""
     from hydra import compose, initialize_config_dir
 
-    from manifold_nets import load_observer
     from manifold_nets.cli.train import run
 
     root = Path(__file__).resolve().parents[1]
@@ -45,7 +43,16 @@ def train_tiny_and_load(experiment: str, tmp_path, *more: str):
     ]
     with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
         cfg = compose("train", overrides=overrides)
-    run(cfg, tmp_path / "run")
+    run(cfg, out)
+    return cfg
+
+
+def train_tiny_and_load(experiment: str, tmp_path, *more: str):
+    """:func:`run_tiny` into ``tmp_path / "run"``, loaded back: ``(observer, system, config)``
+    from ``manifold_nets.load_observer``."""
+    from manifold_nets import load_observer
+
+    run_tiny(experiment, tmp_path, tmp_path / "run", *more)
     return load_observer(tmp_path / "run")
 
 

@@ -5,21 +5,18 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from groups import SO3
 from manifold_nets import TrainSettings
 from manifold_nets.losses import LOG_MSE_EPS, embedding_log_mse, embedding_mse, sequence_mse
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.training import LOSSES, check_settings, fit, validation_loss
-from tests.observer_checks import so3_walk
+from tests.observer_checks import run_tiny, so3_walk
 
 G = SO3()
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def rollout(n=5, t=7, seed=0, dtype=torch.float64):
@@ -127,16 +124,8 @@ def test_fit_trains_and_validates_on_the_log_loss(tmp_path, tbptt):
 
 
 def _train_command(tmp_path, loss):
-    from manifold_nets.cli.train import run
-
-    overrides = [
-        "experiment=paper_cpu_prior", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}",
-        f"train.loss={loss}",
-    ]
-    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
-        cfg = compose("train", overrides=overrides)
+    cfg = run_tiny("paper_cpu_prior", tmp_path, tmp_path / loss, f"train.loss={loss}")
     assert cfg.train.loss == loss
-    run(cfg, tmp_path / loss)
     log = json.loads((tmp_path / loss / "log.json").read_text())
     metrics = json.loads((tmp_path / loss / "results" / "metrics.json").read_text())
     return log, metrics

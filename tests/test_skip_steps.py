@@ -8,21 +8,18 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import pytest
 import torch
-from hydra import compose, initialize_config_dir
 
 from groups import SO3
 from manifold_nets import TrainSettings
 from manifold_nets.losses import embedding_log_mse, embedding_mse
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.training import TrainingDiverged, check_settings, fit, validation_loss
-from tests.observer_checks import so3_walk
+from tests.observer_checks import run_tiny, so3_walk
 
 G = SO3()
-ROOT = Path(__file__).resolve().parents[1]
 
 
 @pytest.mark.parametrize(("loss", "fn"), [("mse", embedding_mse), ("log_mse", embedding_log_mse)])
@@ -73,18 +70,10 @@ def test_bad_skip_steps_say_what_is_wrong():
 
 
 def test_the_train_command_reads_it(tmp_path):
-    from manifold_nets.cli.train import run
-
     runs = {}
     for skip in (1, 4):
-        overrides = [
-            "experiment=default", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}",
-            f"train.skip_steps={skip}",
-        ]
-        with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
-            cfg = compose("train", overrides=overrides)
+        cfg = run_tiny("default", tmp_path, tmp_path / str(skip), f"train.skip_steps={skip}")
         assert cfg.train.skip_steps == skip
-        run(cfg, tmp_path / str(skip))
         runs[skip] = json.loads((tmp_path / str(skip) / "log.json").read_text())
     # the same starting model and validation split, validated over fewer steps
     assert runs[4][0]["val_loss"] != pytest.approx(runs[1][0]["val_loss"], rel=1e-6)
