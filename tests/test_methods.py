@@ -10,7 +10,7 @@ import torch
 from omegaconf import OmegaConf
 from test_configs import CONFIGS, _compose, _tiny
 
-from manifold_nets_examples.rigid_body import RigidBody
+from manifold_nets_examples.rigid_body import MismatchedRigidBody, RigidBody
 from groups import SE3, SO3, Euclidean, Product
 from manifold_nets import results
 from manifold_nets.cli import compare
@@ -34,7 +34,10 @@ def test_every_method_composes_and_names_an_estimator_of_the_rigid_body(method):
     cfg = _compose("experiment=default", f"method={method}")
     assert isinstance(OmegaConf.to_object(cfg), RunConfig)
     assert cfg.method.name == method
-    if method not in ("learned", "untrained"):
+    if method == "ekf_ar1":  # the correlated-noise oracle: a method of the mismatched body only
+        assert method in MismatchedRigidBody().estimators()
+        assert method not in RigidBody().estimators()
+    elif method not in ("learned", "untrained"):
         assert method in RigidBody().estimators()
 
 

@@ -106,6 +106,17 @@ class MismatchedRigidBody(RigidBody):
             "noise_correlation": self.noise_correlation,
         }
 
+    def estimators(self) -> dict:
+        """:class:`~.system.RigidBody`'s, and on the paper's group ``ekf_ar1``
+        (:class:`~.correlated_noise.CorrelatedNoiseEKF`): the EKF told the noise's true AR(1)
+        law (``noise_correlation``), the oracle row of the correlated-noise mismatch."""
+        out = super().estimators()
+        if self.pose_group == "so3_r3":
+            from .correlated_noise import CorrelatedNoiseEKF
+
+            out["ekf_ar1"] = CorrelatedNoiseEKF
+        return out
+
     # ------------------------------------------------------------------ the truth
 
     def sensor_matrices(self, num_sequences: int, generator: torch.Generator) -> torch.Tensor:
