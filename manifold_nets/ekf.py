@@ -28,6 +28,11 @@ One filter step (``k -> k+1``), with ``xhat^- = step(xhat, drive(xhat, y, u, 0))
     P^+ <- J P^+ J^T,  J = d/de rminus(xhat^-·exp(delta + e), xhat^+)   (reset; J_r(delta) on SO(3))
     P^+ <- (P^+ + P^+^T) / 2
 
+With a gate ``g`` (``ErrorStateEKF(model, gate=g)``), an update whose NIS ``nu^T S^-1 nu``
+exceeds ``g`` uses ``R_n NIS / g`` instead of ``R_n`` (covariance inflation, per sequence): an
+outlier moves the estimate as little as an innovation at the gate would, and a run of large
+innovations still pulls a filter that is really off back, where rejecting them would lock it out.
+
 All derivatives are taken at zero by autograd through the group's ``rplus``/``rminus`` and the
 model, by default: reverse mode, with the ``d`` output components stacked in a leading
 dimension in front of the batch and pulled back in one ``torch.func.vjp`` (so the model must
@@ -343,6 +348,18 @@ def _symmetric(P: torch.Tensor) -> torch.Tensor:
     return 0.5 * (P + P.transpose(-1, -2))
 
 
+def _cholesky(S: torch.Tensor) -> torch.Tensor:
+    """The Cholesky factor of the innovation covariance, or a ValueError that says why not."""
+    L, info = torch.linalg.cholesky_ex(_symmetric(S))
+    if bool((info != 0).any()):
+        raise ValueError(
+            "ErrorStateEKF: the innovation covariance S = H P H^T + M R M^T is not positive "
+            "definite (zero measurement noise, or a diverged covariance); give the model a "
+            "measurement noise > 0."
+        )
+    return L
+
+
 class ErrorStateEKF:
     """Error-state EKF on ``model.group``; see the module docstring for the equations.
 
@@ -350,6 +367,10 @@ class ErrorStateEKF:
     model's methods). ``reset``: re-centre the covariance on the corrected estimate (the
     ``J_r(delta)`` of a multiplicative EKF; the identity on ``R^n``). ``progress``: a bar of
     the steps in :meth:`filter`, shown on a terminal when the run takes over two seconds.
+    ``gate``: a threshold on the NIS beyond which the update's measurement noise is inflated
+    (module docstring); ``None`` (default): no gate. ``gate_after``: :meth:`filter` leaves its
+    first ``gate_after`` steps ungated, for a filter started far off, whose first innovations
+    are large because it is (gated, it may converge too slowly and lock onto a wrong state).
     """
 
     def __init__(
@@ -358,6 +379,8 @@ class ErrorStateEKF:
         jacobians: str = "autograd",
         reset: bool = True,
         progress: bool = True,
+        gate: float | None = None,
+        gate_after: int = 0,
     ):
         if not isinstance(model, FilterModel):
             raise TypeError(
@@ -371,6 +394,20 @@ class ErrorStateEKF:
         self.jacobians = jacobians
         self.reset = bool(reset)
         self.progress = bool(progress)
+        if gate is not None and (
+            isinstance(gate, bool) or not isinstance(gate, (int, float)) or not 0 < gate < math.inf
+        ):
+            raise ValueError(
+                f"gate is a threshold on the NIS nu^T S^-1 nu (e.g. 16.8, the chi-square 99 % "
+                f"point for 6 degrees of freedom), > 0, or None; got {gate!r}."
+            )
+        self.gate = None if gate is None else float(gate)
+        if isinstance(gate_after, bool) or not isinstance(gate_after, int) or gate_after < 0:
+            raise ValueError(
+                f"gate_after is the number of the filter's first steps left ungated, an integer "
+                f">= 0; got {gate_after!r}."
+            )
+        self.gate_after = gate_after
         self.name = "ekf"
 
     # ------------------------------------------------------------------ Jacobians
@@ -456,9 +493,10 @@ class ErrorStateEKF:
         return EKFState(x_pred, _symmetric(P_pred)), w
 
     def update(
-        self, state: EKFState, y: torch.Tensor, drive: torch.Tensor
+        self, state: EKFState, y: torch.Tensor, drive: torch.Tensor, gated: bool = True
     ) -> tuple[EKFState, torch.Tensor]:
-        """``(xhat^+, P^+)`` and the NIS ``(B,)`` from ``y_{k+1}`` and the step's drive."""
+        """``(xhat^+, P^+)`` and the NIS ``(B,)`` from ``y_{k+1}`` and the step's drive;
+        ``gated=False`` leaves the gate (if any) out of this update."""
         g, m = self.group, self.model
         x, P = state
         z_hat = m.measure(x, drive)
@@ -469,17 +507,15 @@ class ErrorStateEKF:
             H, M = self.measurement_jacobians(x, drive, z_hat, nu.shape[-1])
         Rn = M @ m.measurement_noise_cov(x.dtype, x.device) @ M.transpose(-1, -2)
         PHt = P @ H.transpose(-1, -2)
-        S = _symmetric(H @ PHt + Rn)
-        L, info = torch.linalg.cholesky_ex(S)
-        if bool((info != 0).any()):
-            raise ValueError(
-                "ErrorStateEKF: the innovation covariance S = H P H^T + M R M^T is not positive "
-                "definite (zero measurement noise, or a diverged covariance); give the model a "
-                "measurement noise > 0."
-            )
+        HPHt = H @ PHt
+        L = _cholesky(HPHt + Rn)
+        nis = (nu.unsqueeze(-1) * torch.cholesky_solve(nu.unsqueeze(-1), L)).sum((-1, -2))
+        if gated and self.gate is not None and bool((nis > self.gate).any()):
+            # an innovation beyond the gate: the measurement noise inflated by nis / gate
+            Rn = Rn * (nis / self.gate).clamp(min=1.0)[..., None, None]
+            L = _cholesky(HPHt + Rn)
         K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)  # P H^T S^-1
         delta = (K @ nu.unsqueeze(-1)).squeeze(-1)
-        nis = (nu.unsqueeze(-1) * torch.cholesky_solve(nu.unsqueeze(-1), L)).sum((-1, -2))
         x_new = g.rplus(x, delta)
         eye = torch.eye(g.tangent_dim, dtype=x.dtype, device=x.device)
         A = eye - K @ H
@@ -497,11 +533,11 @@ class ErrorStateEKF:
         return EKFState(x_new, _symmetric(P_new)), nis
 
     def step(
-        self, state: EKFState, y: torch.Tensor, u: torch.Tensor
+        self, state: EKFState, y: torch.Tensor, u: torch.Tensor, gated: bool = True
     ) -> tuple[EKFState, torch.Tensor]:
         """One predict and update, ``k -> k+1``; returns the new state and the NIS."""
         state, w = self.predict(state, y, u)
-        return self.update(state, y, w)
+        return self.update(state, y, w, gated)
 
     # ------------------------------------------------------------------ whole sequences
 
@@ -546,7 +582,8 @@ class ErrorStateEKF:
         with torch.no_grad():
             steps = progress(range(t), desc=f"{self.name} steps", enabled=self.progress, delay=2.0)
             for k in steps:
-                state, nis[:, k] = self.step(state, measurements[:, k], inputs[:, k])
+                gated = k >= self.gate_after
+                state, nis[:, k] = self.step(state, measurements[:, k], inputs[:, k], gated)
                 est[:, k + 1] = state.x
                 if cov is not None:
                     cov[:, k + 1] = state.P

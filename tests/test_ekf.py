@@ -69,8 +69,9 @@ class LinearSystem(System):
         return y if noise is None else y + noise @ self.D.to(x).T
 
 
-def textbook_kalman(sys: LinearSystem, y, u, sigma, q, s0):
-    """The Kalman filter as printed, one sequence at a time, with the standard covariance update."""
+def textbook_kalman(sys: LinearSystem, y, u, sigma, q, s0, gate=None):
+    """The Kalman filter as printed, one sequence at a time, with the standard covariance update;
+    with ``gate``, an innovation whose NIS exceeds it has ``R`` scaled by ``NIS / gate``."""
     A, B, C, D = sys.A, sys.B, sys.C, sys.D
     Q, Rn = q**2 * B @ B.T, sigma**2 * D @ D.T
     out = []
@@ -81,6 +82,10 @@ def textbook_kalman(sys: LinearSystem, y, u, sigma, q, s0):
             x = A @ x + B @ u[i, k]
             P = A @ P @ A.T + Q
             S = C @ P @ C.T + Rn
+            nu = y[i, k] - C @ x
+            nis = float(nu @ torch.linalg.inv(S) @ nu)
+            if gate is not None and nis > gate:
+                S = C @ P @ C.T + Rn * (nis / gate)
             K = P @ C.T @ torch.linalg.inv(S)
             x = x + K @ (y[i, k] - C @ x)
             P = (torch.eye(3, dtype=F64) - K @ C) @ P
@@ -101,6 +106,47 @@ def test_linear_system_equals_textbook_kalman_filter():
     assert float((res.estimates - ds.states).norm(dim=-1)[:, 5:].mean()) < float(
         (ds.states[:, 5:]).norm(dim=-1).mean()
     )
+
+
+def test_the_gate_inflates_the_measurement_noise_of_large_innovations_like_the_textbook():
+    sys = LinearSystem()
+    sigma, q, s0 = 0.3, 0.2, 2.0
+    ds = sys.simulate(4, 30, sigma, gen(1))
+    y = ds.measurements.clone()
+    y[:, 10] += 5.0  # an outlier in every sequence at step 11
+    y[1, 20] -= 3.0
+    model = SystemFilterModel(sys, sigma, drive_noise_std=q, initial_std=s0)
+    gated = ErrorStateEKF(model, gate=6.0).filter(y, ds.inputs)
+    ref = textbook_kalman(sys, y, ds.inputs, sigma, q, s0, gate=6.0)
+    torch.testing.assert_close(gated.estimates, ref, atol=1e-10, rtol=0)
+    assert float(gated.nis[:, 10].min()) > 6.0  # the NIS returned is the ungated innovation's
+    plain = ErrorStateEKF(model).filter(y, ds.inputs)
+    assert not torch.allclose(gated.estimates, plain.estimates)
+    wide = ErrorStateEKF(model, gate=1e12).filter(y, ds.inputs)  # never reached: the plain EKF
+    assert torch.equal(wide.estimates, plain.estimates)
+    err = lambda r: float((r.estimates - ds.states)[:, 11:16].norm(dim=-1).mean())  # noqa: E731
+    assert err(gated) < err(plain)  # the outlier moves the gated estimate less
+
+
+def test_the_gate_waits_gate_after_steps():
+    sys = LinearSystem()
+    ds = sys.simulate(3, 30, 0.3, gen(2))
+    y = ds.measurements.clone()
+    y[:, 3] += 5.0  # outliers before and after the gate opens
+    y[:, 15] += 5.0
+    model = SystemFilterModel(sys, 0.3, drive_noise_std=0.2, initial_std=2.0)
+    plain = ErrorStateEKF(model).filter(y, ds.inputs).estimates
+    late = ErrorStateEKF(model, gate=6.0, gate_after=10).filter(y, ds.inputs).estimates
+    assert torch.equal(late[:, :11], plain[:, :11])  # steps 1-10 ungated, the outlier included
+    assert not torch.allclose(late[:, 16], plain[:, 16])
+    with pytest.raises(ValueError, match="gate_after is the number of the filter's first steps"):
+        ErrorStateEKF(model, gate=6.0, gate_after=-1)
+
+
+@pytest.mark.parametrize("gate", [0.0, -1.0, math.inf, math.nan, True, "16"])
+def test_a_bad_gate_is_refused(gate):
+    with pytest.raises(ValueError, match="gate is a threshold on the NIS"):
+        ErrorStateEKF(SystemFilterModel(LinearSystem(), 0.3), gate=gate)
 
 
 def test_float32_follows_float64():

@@ -377,7 +377,8 @@ class RigidBody(System):
         """``raw``, ``dead_reckoning`` and, on the paper's group (``pose_group='so3_r3'``), ``ekf``
         (:class:`~.filters.RigidBodyEKF`, the nominal model and noise level ``sigma``),
         ``ekf_tuned`` (the same model with its noise levels searched on data of this system,
-        :meth:`~.filters.RigidBodyEKF.tuned`) and ``complementary``
+        :meth:`~.filters.RigidBodyEKF.tuned`), ``ekf_robust`` (the nominal EKF with an innovation
+        gate, :meth:`~.filters.RigidBodyEKF.robust`) and ``complementary``
         (:meth:`~.filters.ComplementaryFilter.tuned`, gains searched per sigma), for
         ``method=<name>``."""
         out = super().estimators()
@@ -387,6 +388,7 @@ class RigidBody(System):
             out.update(
                 ekf=RigidBodyEKF,
                 ekf_tuned=RigidBodyEKF.tuned,
+                ekf_robust=RigidBodyEKF.robust,
                 complementary=ComplementaryFilter.tuned,
             )
         return out
