@@ -21,6 +21,7 @@ NAMES = [
     "paper_cpu_prior_log_bptt1000",
     "paper_cpu_prior_centred07_skip10_plus4",
     "paper_cpu_prior_centred085_ramp50_cosine2",
+    "paper_cpu_prior_centred085_ramp50_cosine16",
     "mismatch_bias_walk_prior_long1000",
     "mismatch_bias_walk",
     "mismatch_outliers",
@@ -28,9 +29,11 @@ NAMES = [
     "mismatch_sensor",
     "mismatch_outliers_prior_log_bptt1000",
     "mismatch_correlated_prior_bptt1000_mse",
+    "mismatch_correlated_prior_log_cosine2",
     "mismatch_sensor_prior_log_bptt1000",
     "mismatch_outliers_long_bptt1000_log",
     "mismatch_outliers_long_bptt1000_log_skip10",
+    "mismatch_outliers_long_bptt1000_log_cosine3",
 ]
 
 
