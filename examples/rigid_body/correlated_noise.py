@@ -29,8 +29,9 @@ I_6]]`` and ``G' = [G; 0; I_6]``; the measurement residual ``(log(exp(-n_R) exp(
 exp(n_R + dn_R)), dp + dn_p)`` gives ``H = [[exp(n_R)^T, 0, 0, 0, J_r(n_R), 0, 0], [0, I, 0, 0,
 0, I, 0]]``. The tests check them against autograd.
 
-**The estimator** (:class:`CorrelatedNoiseEKF`, ``method=ekf_ar1``) starts like the nominal one,
-at step ``init_steps`` (5) from :func:`~.filters.initialize_from_measurements`, with the noise
+**The estimator** (:class:`CorrelatedNoiseEKF`, ``method=ekf_ar1``, a
+:class:`~.filters.RigidBodyEKF` with its own model and start) starts like the nominal one, at
+step ``init_steps`` (5) from :func:`~.filters.initialize_from_measurements`, with the noise
 states at 0 (variance ``sigma^2``); the measured pose's error is then minus the pose noise, which
 the prior's covariance says (``cov(dtheta, n_R) = -sigma^2 I``), and the bias estimate, a mean of
 correlated noise, gets its variance times ``(1 + rho) / (1 - rho)`` (the AR(1) variance of a
@@ -43,10 +44,9 @@ import torch
 
 from groups import SO3, Euclidean, Product
 from groups.so3 import left_jacobian
-from manifold_nets.data import TrajectoryDataset
 from manifold_nets.ekf import ErrorStateEKF, FilterModel, check_noise_level
 
-from .filters import RigidBodyFilterModel, initialize_from_measurements
+from .filters import RigidBodyEKF, RigidBodyFilterModel
 from .system import RigidBody
 
 __all__ = ["CorrelatedNoiseEKF", "CorrelatedNoiseFilterModel"]
@@ -109,7 +109,8 @@ class CorrelatedNoiseFilterModel(FilterModel):
 
     def step(self, x, drive):
         base, n_pose, _ = self.split(x)
-        return torch.cat((self.system.step(base, drive[..., :6]), self.rho * n_pose, drive[..., 6:]), -1)
+        moved = self.system.step(base, drive[..., :6])
+        return torch.cat((moved, self.rho * n_pose, drive[..., 6:]), dim=-1)
 
     def measure(self, x, drive, noise=None):
         base, n_pose, _ = self.split(x)
@@ -193,12 +194,14 @@ class CorrelatedNoiseFilterModel(FilterModel):
         return J
 
 
-class CorrelatedNoiseEKF:
+class CorrelatedNoiseEKF(RigidBodyEKF):
     """The EKF with the AR(1) noise in its state, as an estimator (``method=ekf_ar1``).
 
     ``rho``: the noise's AR(1) coefficient, by default the system's ``noise_correlation`` (0 for
-    a system without one, where this is the nominal EKF). ``init_steps``, ``jacobians``: as
-    :class:`~.filters.RigidBodyEKF`. Its estimates are the base state's, ``(N, T+1, 18)``.
+    a system without one, where this is the nominal EKF). ``init_steps`` (>= 2: it starts from
+    the measurements), ``jacobians``: as :class:`~.filters.RigidBodyEKF`, whose estimate it
+    shares; only the start differs (:meth:`start_belief`). Its estimates are the base state's,
+    ``(N, T+1, 18)``. The nominal model's constructors (``tuned``, ``robust``) are not for it.
     """
 
     name = "ekf_ar1"
@@ -231,15 +234,10 @@ class CorrelatedNoiseEKF:
             f"jacobians={self.ekf.jacobians!r}, init_steps={self.init_steps})"
         )
 
-    def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
-        y, m, rho = data.measurements, self.init_steps, self.model.rho
-        if y.shape[1] < m:
-            raise ValueError(f"sequences of {y.shape[1]} steps are shorter than init_steps={m}.")
-        x, P = initialize_from_measurements(self.system, y[:, :m], self.model.sigma)
-        P[:, 6:, 6:] *= (1 + rho) / (1 - rho)  # the variance of a mean of AR(1) noise
-        x, P = self.model.augment(x, P, pose_measured=True)
-        res = self.ekf.filter(y[:, m:], x0=x, P0=P)
-        self.seconds = res.seconds
-        head = self.system.state_from_measurement(y[:, : m - 1])
-        x0 = self.group.identity((len(y), 1), dtype=y.dtype, device=y.device)
-        return torch.cat((x0, head, res.estimates[..., :_BASE]), dim=1)
+    def start_belief(self, head: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The nominal start with the biases' variance times ``(1 + rho) / (1 - rho)`` (the
+        variance of a mean of AR(1) noise) and the noise states added; the pose is the last
+        measured one (:meth:`CorrelatedNoiseFilterModel.augment`)."""
+        x, P = super().start_belief(head)
+        P[:, 6:, 6:] *= (1 + self.model.rho) / (1 - self.model.rho)
+        return self.model.augment(x, P, pose_measured=True)

@@ -389,7 +389,8 @@ class RigidBodyEKF:
         the estimate as little as a 99 % innovation would (``ErrorStateEKF(gate=)``). The
         filter's first ``gate_after`` steps are ungated: an outlier among the 5 measurements of
         the start makes the first bias estimate far off, and gated from the start a few
-        sequences in 200 converged too slowly and locked onto a wrong gyro bias (docs/baselines.md)."""
+        sequences in 200 converged too slowly and locked onto a wrong gyro bias
+        (docs/baselines.md)."""
         return cls(system, sigma, gate=gate, gate_after=gate_after, **kw)
 
     def __repr__(self) -> str:
@@ -409,21 +410,29 @@ class RigidBodyEKF:
             f"init_steps={self.init_steps}{tuned})"
         )
 
+    def start_belief(self, head: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The filter's belief at step ``init_steps`` from the first measurements ``head``
+        ``(N, m, 18)``: :func:`initialize_from_measurements`. A filter with a larger state
+        (:class:`~.correlated_noise.CorrelatedNoiseEKF`) extends it."""
+        return initialize_from_measurements(self.system, head, self.model.sigma)
+
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
+        """Estimates ``(N, T+1, 18)``: the system's state (a filter's extra states left out)."""
         y = data.measurements
         m = self.init_steps
+        n = self.group.element_shape[0]
         if m == 0:
             res = self.ekf.filter(y)
             self.seconds = res.seconds
-            return res.estimates
+            return res.estimates[..., :n]
         if y.shape[1] < m:
             raise ValueError(f"sequences of {y.shape[1]} steps are shorter than init_steps={m}.")
-        x, P = initialize_from_measurements(self.system, y[:, :m], self.model.sigma)
+        x, P = self.start_belief(y[:, :m])
         res = self.ekf.filter(y[:, m:], x0=x, P0=P)
         self.seconds = res.seconds
         head = self.system.state_from_measurement(y[:, : m - 1])
         x0 = self.group.identity((len(y), 1), dtype=y.dtype, device=y.device)
-        return torch.cat((x0, head, res.estimates), dim=1)
+        return torch.cat((x0, head, res.estimates[..., :n]), dim=1)
 
 
 #: The EKF's noise levels searched by :func:`tune_ekf_noise`: the readings' and the pose's noise
