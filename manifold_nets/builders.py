@@ -125,6 +125,7 @@ def build_observer(
         },
         propagate=dict(getattr(model, "propagate", None) or {}),
         dt=dt,
+        clock=tuple(getattr(model, "clock", None) or ()),
     )
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)
     gain, offset, centering, ramp = _update_form(model, inputs)

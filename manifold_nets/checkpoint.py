@@ -215,7 +215,8 @@ def load_weights(
     head also loads into the same observer with one, which then starts out computing what the
     checkpoint's does (``ResidualObserver.state_with_gain``: ``K = 0``), and the checkpoint of
     an observer with another ``centering`` or ``centering_ramp`` (the centred update; the same
-    weights).
+    weights), and the checkpoint of an observer without clock inputs into one with them
+    (``ResidualObserver.state_with_clock``: their weights zero).
 
     Returns the file and the checkpoint's contents.
     """
@@ -226,6 +227,10 @@ def load_weights(
         found = {k: v for k, v in found.items() if k not in _CENTRING}
         own = model.signature()
         found.update({k: own[k] for k in _CENTRING if k in own})
+    clock = getattr(getattr(model, "inputs", None), "clock", ())
+    if widen_gain and clock and not found.get("clock"):
+        state, found = model.state_with_clock(ckpt["model"], found, where=str(path))
+        ckpt = {**ckpt, "model": state}
     if widen_gain and getattr(model, "gain", False) and not found.get("gain"):
         ckpt = {**ckpt, "model": model.state_with_gain(ckpt["model"], found, where=str(path))}
     else:

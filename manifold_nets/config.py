@@ -97,6 +97,11 @@ class ModelConfig:
     #: factor's velocity; before the learned update ``x_f <- x_f · exp(system.dt · u_f)``, e.g.
     #: ``{R: [6, 9]}`` for a gyroscope (an extension; ``manifold_nets.inputs``).
     propagate: dict[str, list[int]] = field(default_factory=dict)
+    #: Clock inputs: time constants in steps, e.g. ``[10, 100, 1000]``; the core also reads
+    #: ``tau / (tau + k)`` for each, ``k`` the steps taken, so a gain can fall as a filter's does
+    #: (an extension; ``manifold_nets.inputs``). ``train.init_from`` widens an observer without
+    #: them (their weights start at zero). Empty: none.
+    clock: list[float] = field(default_factory=list)
     #: A model prior: ``none`` or ``system``, the system's nominal prediction
     #: (``System.predict``: for the rigid body the step with the bias-corrected readings) moves
     #: the estimate before the learned update, which then only corrects it (an extension).

@@ -25,6 +25,11 @@ optional extensions (both off by default):
   group kinematics ``dx/dt = x · (omega)^`` with ``omega`` held over the step. The core then
   reads that prediction (its embedding, the innovation and rotated vectors there) and its
   output corrects it: the network learns what the filter adds to integration, not integration.
+* ``clock = (10, 100, 1000)``: time constants in steps; the core also reads
+  ``tau / (tau + k)`` for each, ``k`` the steps taken from the start (1 at the first step, 1/2
+  at ``k = tau``). A Kalman filter's gain on a constant (a bias) falls like ``1 / k`` as its
+  covariance shrinks; a recurrent core without a clock has to count the steps in its state,
+  and with a bounded state it tends to a constant gain, whose error stops falling.
 
 The object is plain data; :meth:`ObserverInputs.check` validates it against a group and a
 measurement size, :meth:`ObserverInputs.core_input_size` says how wide the core's input is, and
@@ -57,6 +62,7 @@ class ObserverInputs:
         propagate: ``{factor name: (start, stop)}``, the span of ``(y, u)`` holding the
             factor's velocity (tangent_dim entries) for the kinematic prior.
         dt: the step length that scales ``propagate``'s velocities (seconds; needed with it).
+        clock: time constants ``tau`` (steps, each > 0); the core reads ``tau / (tau + k)``.
     """
 
     innovation: Mapping[str, tuple[int, int]] = field(default_factory=dict)
@@ -64,6 +70,7 @@ class ObserverInputs:
     rotated: Mapping[str, tuple[tuple[int, int], ...]] = field(default_factory=dict)
     propagate: Mapping[str, tuple[int, int]] = field(default_factory=dict)
     dt: float | None = None
+    clock: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         spans = {}
@@ -98,6 +105,7 @@ class ObserverInputs:
                     f"{dt!r}; the system's dt, e.g. 1/285.714 for a 285.714 Hz IMU."
                 )
             object.__setattr__(self, "dt", float(dt))
+        object.__setattr__(self, "clock", _clock(self.clock))
 
     def check(self, group: LieGroup, measurement_dim: int) -> ObserverInputs:
         """Raises ``ValueError`` naming the problem unless every factor exists in ``group``, every
@@ -204,7 +212,14 @@ class ObserverInputs:
             + (measurement_dim + input_dim if ctx is None else len(ctx))
             + self.innovation_dim(group)
             + self.rotated_dim()
+            + len(self.clock)
         )
+
+    def clock_features(self, k: torch.Tensor) -> torch.Tensor:
+        """``tau / (tau + k)`` for each time constant: ``(..., len(clock))`` for the step counts
+        ``k`` (a tensor of any shape, in the dtype the features should have)."""
+        tau = torch.tensor(self.clock, dtype=k.dtype, device=k.device)
+        return tau / (tau + k.unsqueeze(-1))
 
     def signature(self) -> dict:
         """JSON-able description, part of the observer's checkpoint signature."""
@@ -216,6 +231,8 @@ class ObserverInputs:
             out["rotated"] = {k: [list(s) for s in v] for k, v in self.rotated.items()}
             out["propagate"] = {k: list(v) for k, v in self.propagate.items()}
             out["dt"] = self.dt
+        if self.clock:  # absent when empty, likewise
+            out["clock"] = list(self.clock)
         return out
 
 
@@ -225,3 +242,19 @@ def _span(what: str, span) -> tuple[int, int]:
     except (TypeError, ValueError):
         raise ValueError(f"{what} must be (start, stop) in (y, u), got {span!r}.") from None
     return a, b
+
+
+def _clock(taus) -> tuple[float, ...]:
+    if isinstance(taus, (str, bytes)) or not hasattr(taus, "__iter__"):
+        raise ValueError(
+            f"clock must be a list of time constants in steps, e.g. [10, 100, 1000], got {taus!r}."
+        )
+    out = []
+    for tau in taus:
+        if isinstance(tau, bool) or not isinstance(tau, (int, float)) or not 0 < tau < 1e12:
+            raise ValueError(
+                f"clock: each time constant must be a positive number of steps, got {tau!r} "
+                f"in {list(taus)!r}."
+            )
+        out.append(float(tau))
+    return tuple(out)

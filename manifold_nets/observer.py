@@ -47,7 +47,8 @@ every filter's update: with exact readings the truth is a fixed point whatever t
 remembers. A ``c`` below 1 keeps part of the offset a trained observer relies on (its weights
 load unchanged at any ``c``). The core runs on twice the batch. ``centering_ramp=K`` raises
 ``c`` linearly over the first ``K`` steps (``c_k = c min(1, k / K)``), so the start-up stays
-uncentred; :attr:`ObserverState.steps` counts the steps.
+uncentred; :attr:`ObserverState.steps` counts the steps. The same count drives the clock
+inputs (``ObserverInputs.clock``: the core reads ``tau / (tau + k)``).
 
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
@@ -170,8 +171,8 @@ def _check_output_scale(output_scale: float) -> float:
 
 class ObserverState(NamedTuple):
     """The online state: the estimate ``(B, *element_shape)``, the core's hidden state, and the
-    number of steps taken from the start (the clock of the centring ramp, ``centering_ramp``;
-    one count for the whole batch)."""
+    number of steps taken from the start (the clock of the centring ramp, ``centering_ramp``,
+    and of the clock inputs, ``ObserverInputs.clock``; one count for the whole batch)."""
 
     estimate: torch.Tensor
     hidden: Hidden
@@ -536,6 +537,36 @@ class ResidualObserver(nn.Module):
             out[name] = torch.cat([old * ratio, gain.to(old.device)])
         return out
 
+    def state_with_clock(
+        self, state: dict, signature: dict, where: str = "checkpoint"
+    ) -> tuple[dict, dict]:
+        """A ``state_dict`` and signature for this observer with clock inputs
+        (``inputs.clock``) from one of the same observer without them: the first GRU layer's
+        input weights get a zero column per clock input, so this observer starts out computing
+        exactly what that one does (``train.init_from``). The other differences (the gain head,
+        the centring) are left to the caller's checks.
+
+        Raises :class:`~manifold_nets.checkpoint.CheckpointError` when the checkpoint has clock
+        inputs already, or this observer has none or no :class:`~manifold_nets.cores.GRUCore`."""
+        from .checkpoint import CheckpointError
+
+        n = len(self.inputs.clock)
+        if not n or signature.get("clock") or not isinstance(self.core, GRUCore):
+            raise CheckpointError(
+                f"{where}: an observer's weights widen to clock inputs only into an observer "
+                "with clock inputs (model.clock) and a GRU core (model.core=gru), from one "
+                "without them."
+            )
+        name = "core.gru.weight_ih_l0"
+        old = state.get(name)
+        core = dict(signature.get("core", {}))
+        if old is None or old.dim() != 2 or old.shape[1] != core.get("input_size"):
+            raise CheckpointError(f"{where}: no first GRU layer of the checkpoint's input size.")
+        zeros = torch.zeros((old.shape[0], n), dtype=old.dtype, device=old.device)
+        state = {**state, name: torch.cat([old, zeros], dim=1)}
+        core["input_size"] = old.shape[1] + n
+        return state, {**signature, "core": core, "clock": list(self.inputs.clock)}
+
     def extra_repr(self) -> str:
         return (
             f"group={self.group!r}, measurement_dim={self.measurement_dim}, "
@@ -592,7 +623,7 @@ class ResidualObserver(nn.Module):
 
     def _step(
         self, x: torch.Tensor, hidden: Hidden, context: torch.Tensor, measured=(), readings=None,
-        centering=None,
+        centering=None, clock=None,
     ):
         """One unchecked step.
 
@@ -600,7 +631,9 @@ class ResidualObserver(nn.Module):
         network dtype (less the relative-only columns); ``measured``: the step's measured factor
         elements (innovation only); ``readings``: the step's ``(y, u)`` ``(B, l + m)`` in the
         state dtype (model prior only); ``centering``: the step's ``c_k`` (a number or a 0-d
-        tensor; default ``self.centering``; read only when the observer is centred).
+        tensor; default ``self.centering``; read only when the observer is centred); ``clock``:
+        the step's clock features ``(len(inputs.clock),)`` or ``(B, len(inputs.clock))`` in the
+        network dtype (clock inputs only).
         """
         net = context.dtype
         if self.prior is not None:
@@ -624,11 +657,12 @@ class ResidualObserver(nn.Module):
             R = x[:, xs].unflatten(-1, (3, 3)).to(net)
             vecs = extra[:, cols].unflatten(-1, (-1, 3))
             rotated.append((vecs @ R.transpose(-1, -2)).flatten(-2))
-        inp = torch.cat([e, context, *innovation, *rotated], dim=-1)
+        tail = rotated if clock is None else [*rotated, clock.expand(x.shape[0], -1)]
+        inp = torch.cat([e, context, *innovation, *tail], dim=-1)
         if self.centering:  # v = T(z) - c T(z^0): one core step on both, the hidden state from z
             b = inp.shape[0]
             zero = [torch.zeros_like(i) for i in innovation]
-            z0 = torch.cat([e, self._measured_at(x, context), *zero, *rotated], dim=-1)
+            z0 = torch.cat([e, self._measured_at(x, context), *zero, *tail], dim=-1)
             out, hidden = self.core.step(
                 torch.cat((inp, z0)), tuple(torch.cat((h, h)) for h in hidden)
             )
@@ -648,6 +682,13 @@ class ResidualObserver(nn.Module):
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
+
+    def _clock_at(self, k: torch.Tensor) -> torch.Tensor | list[None]:
+        """The clock features ``(*k.shape, len(inputs.clock))`` at the step counts ``k`` in the
+        network dtype; without clock inputs, ``None`` per count."""
+        if not self.inputs.clock:
+            return [None] * max(1, k.numel())
+        return self.inputs.clock_features(k.to(device=self.device, dtype=self.net_dtype))
 
     def _measured_at(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
         """``context`` with each innovation factor's measured columns set to the embedding of
@@ -766,6 +807,7 @@ class ResidualObserver(nn.Module):
             self._measured(y),
             self._readings(y, u),
             self.centering_at(state.steps),
+            self._clock_at(torch.tensor([float(state.steps)]))[0],
         )
         shape = self.group.element_shape
         return ObserverState(x.view(x.shape[0], *shape), hidden, state.steps + 1)
@@ -818,8 +860,11 @@ class ResidualObserver(nn.Module):
         if k0 < self.centering_ramp:
             ks = torch.arange(k0, min(k0 + len(steps), self.centering_ramp), dtype=torch.float64)
             ramp = self.centering_at(ks).to(context).unbind(0)
+        ks = torch.arange(k0, k0 + len(steps), dtype=torch.float64)
+        clocks = self._clock_at(ks.to(context))
         for i, (c, m, r) in enumerate(zip(steps, measured, readings)):
-            x, hidden = step(x, hidden, c, m, r, *ramp[i : i + 1])
+            ci = ramp[i] if i < len(ramp) else None
+            x, hidden = step(x, hidden, c, m, r, ci, clocks[i])
             xs.append(x)
         est = torch.stack(xs, dim=1).unflatten(-1, self.group.element_shape)
         if return_state:
