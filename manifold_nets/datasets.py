@@ -162,13 +162,19 @@ def dataset_path(
 
 
 def load_or_generate(
-    system: System, cfg: DatasetConfig | dict | Any, cache_dir: str | Path | None = None
+    system: System,
+    cfg: DatasetConfig | dict | Any,
+    cache_dir: str | Path | None = None,
+    *,
+    cache: bool = True,
 ) -> dict[str, TrajectoryDataset]:
     """The splits of ``cfg``'s file by name, read from the cache or generated and cached.
 
     Returns ``{split: TrajectoryDataset}`` (``train``, ``val``, ``test`` by default).
     ``cache_dir`` overrides ``cfg.cache_dir``. A cached file is validated on load (format
     version, NaN/Inf, states on ``system.group``, config hash); ``cfg.regenerate`` rewrites it.
+    With ``cache=False`` a cached file is still read, but a missing one is generated in memory
+    and not written (the same data: the file's name and contents depend only on ``cfg``).
     All of ``cfg`` is checked before any work.
     """
     cfg = _as_config(cfg)
@@ -176,6 +182,13 @@ def load_or_generate(
     request = _request(cfg)
     path = dataset_path(system, Path(cfg.cache_dir if cache_dir is None else cache_dir), **request)
     expected = _hash(_request_config(system, **request))
+    if not cache and not (path.exists() and not cfg.regenerate):
+        ds = make_dataset(system, **request, show_progress=cfg.progress)
+        _check_generated(system, ds, path)
+        ds.validate(system.group, where=f"the data generated for {path} (not cached)")
+        log.info("generated %d x %d at sigma %g in memory (not cached)",
+                 request["num_sequences"], request["length"], request["sigma"])
+        return ds.splits()
     with file_lock(path):  # parallel jobs wanting this file: one generates, the others read it
         ds = _read_or_make(system, cfg, request, path, expected)
     ds.meta["path"] = str(path)
@@ -231,10 +244,12 @@ def training_data(
     data_file: str | Path | None = None,
     noise_levels: Sequence[float] = (),
     cache_dir: str | Path | None = None,
+    cache: bool = True,
 ) -> dict[str, TrajectoryDataset]:
     """The splits to train on (at least ``train`` and ``val``): read from ``data_file`` (a file
     of :func:`~manifold_nets.data.save_dataset`), a :func:`noise_level_mixture` of ``dataset``
-    at ``noise_levels``, or ``dataset`` itself from the cache."""
+    at ``noise_levels``, or ``dataset`` itself from the cache (``cache=False``: a missing file is
+    generated in memory, not written; :func:`load_or_generate`)."""
     if data_file is not None:
         if noise_levels:
             raise ValueError(
@@ -248,9 +263,9 @@ def training_data(
             )
         parts = load_dataset(path, group=system.group).splits()
     elif noise_levels:
-        parts = noise_level_mixture(system, dataset, noise_levels, cache_dir=cache_dir)
+        parts = noise_level_mixture(system, dataset, noise_levels, cache_dir=cache_dir, cache=cache)
     else:
-        parts = load_or_generate(system, dataset, cache_dir=cache_dir)
+        parts = load_or_generate(system, dataset, cache_dir=cache_dir, cache=cache)
     missing = [s for s in ("train", "val") if s not in parts]
     if missing:
         raise DatasetError(
@@ -265,19 +280,23 @@ def noise_level_mixture(
     dataset: DatasetConfig,
     levels: Sequence[float],
     cache_dir: str | Path | None = None,
+    cache: bool = True,
 ) -> dict[str, TrajectoryDataset]:
     """Every split of ``dataset`` with each sequence's measurements taken from one noise level of
     ``levels``, drawn at random (seeded by ``dataset.seed``).
 
     The data are generated (or read from the cache) once per level with the same seed, so the
-    trajectories agree and only the measurement noise differs.
+    trajectories agree and only the measurement noise differs (``cache``: as for
+    :func:`load_or_generate`).
     """
     levels = [float(s) for s in levels]
     gen = torch.Generator().manual_seed(int(dataset.seed))
     choice: dict[str, torch.Tensor] = {}
     out: dict[str, TrajectoryDataset] = {}
     for i, sigma in enumerate(levels):
-        parts = load_or_generate(system, replace(dataset, sigma=sigma), cache_dir=cache_dir)
+        parts = load_or_generate(
+            system, replace(dataset, sigma=sigma), cache_dir=cache_dir, cache=cache
+        )
         for name, part in parts.items():
             if name not in choice:
                 choice[name] = torch.randint(len(levels), (len(part),), generator=gen)

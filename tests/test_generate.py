@@ -98,6 +98,26 @@ def test_cache_reuses_the_file_and_regenerates_on_change(tmp_path, monkeypatch):
     assert not list(tmp_path.glob(".*tmp"))
 
 
+def test_without_cache_the_same_data_is_made_in_memory_and_a_cached_file_still_read(
+    tmp_path, monkeypatch
+):
+    """``cache=False`` (a streamed run's validation data): nothing is written, the data are the
+    cached ones bit for bit, and a file already there is read, not remade."""
+    body = RigidBody()
+    fresh = load_or_generate(body, tiny(tmp_path / "a"), cache=False)
+    assert not (tmp_path / "a").exists() or not list((tmp_path / "a").iterdir())
+    cached = load_or_generate(body, tiny(tmp_path / "b"))
+    assert all(torch.equal(fresh[k].measurements, cached[k].measurements) for k in cached)
+    assert all(torch.equal(fresh[k].states, cached[k].states) for k in cached)
+
+    def boom(*a, **k):
+        raise AssertionError("regenerated although the cache holds the file")
+
+    monkeypatch.setattr(gen_mod, "make_dataset", boom)
+    again = load_or_generate(body, tiny(tmp_path / "b"), cache=False)
+    assert all(again[k] == cached[k] for k in cached)
+
+
 def test_regenerate_rewrites_and_hash_mismatch_is_refused(tmp_path):
     body = RigidBody()
     cfg = tiny(tmp_path)

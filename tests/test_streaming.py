@@ -187,6 +187,9 @@ def test_a_tiny_run_with_train_stream_trains_on_the_stream(tmp_path, monkeypatch
     # the training split's size (32 of 40) and dataset.length, seeded by dataset.seed
     assert (stream.num_sequences, stream.length, stream.seed) == (32, 8, int(cfg.dataset.seed))
     assert stream.asked == [1, 2]
+    # the validation data were made in memory: only the inference set (4 x 16) is cached
+    assert [f.name for f in (tmp_path / "data").glob("*.npz") if "_40x8_" in f.name] == []
+    assert list((tmp_path / "data").glob("*_4x16_*.npz"))
     assert (tmp_path / "run" / "checkpoints" / "best.pt").is_file()
     assert (tmp_path / "run" / "checkpoints" / "last.pt").is_file()
     assert metrics["best_epoch"] in (0, 1, 2)

@@ -163,6 +163,7 @@ def train(
         data_file=absolute(cfg.data_file) if cfg.data_file else None,
         noise_levels=list(t.noise.levels),
         cache_dir=absolute(dataset.cache_dir),
+        cache=not t.stream,  # a stream trains on fresh data: only val/test are used, not cached
     )
     if t.compile:
         model.compile_step()
@@ -179,6 +180,7 @@ def train(
             system, len(parts["train"]), cfg.dataset.length, sigma=cfg.dataset.sigma,
             noise_levels=list(t.noise.levels), seed=int(cfg.dataset.seed),
         )
+        del parts["train"]  # not trained on: free its memory
         log.info("training data: fresh every epoch (train.stream=true), %r", train_data)
     t0 = time.perf_counter()
     result = fit(
