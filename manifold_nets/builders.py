@@ -158,6 +158,7 @@ def build_observer(
         offset=offset,
         centering=centering,
         centering_ramp=ramp,
+        centering_factors=dict(getattr(model, "centering_factors", None) or {}),
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 

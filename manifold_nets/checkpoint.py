@@ -39,7 +39,7 @@ __all__ = [
 
 FORMAT = "manifold_nets.checkpoint/1"
 #: The signature's keys of the centred update, which adds no weight (``train.init_from``).
-_CENTRING = ("centering", "centering_ramp")
+_CENTRING = ("centering", "centering_ramp", "centering_factors")
 
 
 class CheckpointError(ValueError):
@@ -214,8 +214,8 @@ def load_weights(
     With ``widen_gain`` (``train.init_from``) the checkpoint of an observer without the gain
     head also loads into the same observer with one, which then starts out computing what the
     checkpoint's does (``ResidualObserver.state_with_gain``: ``K = 0``), and the checkpoint of
-    an observer with another ``centering`` or ``centering_ramp`` (the centred update; the same
-    weights), and the checkpoint of an observer without clock inputs into one with them
+    an observer with another ``centering``, ``centering_ramp`` or ``centering_factors`` (the
+    centred update; the same weights), and the checkpoint of an observer without clock inputs into one with them
     (``ResidualObserver.state_with_clock``: their weights zero).
 
     Returns the file and the checkpoint's contents.

@@ -121,6 +121,10 @@ class ModelConfig:
     #: start-up, where the network pulls large errors in through its memory, stays uncentred
     #: (needs ``centering``). 0: the full ``c`` from the first step.
     centering_ramp: int = 0
+    #: Another ``c`` for some factors, ``{factor: c_f}`` (ramped alike; needs ``centering``),
+    #: e.g. ``{b_omega: 0.95, b_v: 0.95}``: the rigid body's biases centred more than its pose.
+    #: It adds no weight. Empty: every factor at ``centering``.
+    centering_factors: dict[str, float] = field(default_factory=dict)
     #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
     output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).

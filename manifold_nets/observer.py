@@ -47,7 +47,9 @@ every filter's update: with exact readings the truth is a fixed point whatever t
 remembers. A ``c`` below 1 keeps part of the offset a trained observer relies on (its weights
 load unchanged at any ``c``). The core runs on twice the batch. ``centering_ramp=K`` raises
 ``c`` linearly over the first ``K`` steps (``c_k = c min(1, k / K)``), so the start-up stays
-uncentred; :attr:`ObserverState.steps` counts the steps. The same count drives the clock
+uncentred; :attr:`ObserverState.steps` counts the steps. ``centering_factors={name: c_f}`` sets
+another ``c`` for some factors (their tangent components), ramped alike: on the rigid body, a
+bias left 15 % uncentred keeps a floor under its error where the attitude needs the offset. The same count drives the clock
 inputs (``ObserverInputs.clock``: the core reads ``tau / (tau + k)``).
 
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
@@ -218,6 +220,9 @@ class ResidualObserver(nn.Module):
             ``c_k = c min(1, k / K)`` at the step from ``x_k`` (default 0: ``c`` from the
             first step). The start-up, where the network pulls large errors in through its
             memory, stays uncentred; ``ObserverState.steps`` is its clock.
+        centering_factors: ``{factor name: c_f}``, each in ``[0, 1]``: those factors' tangent
+            components are centred by ``c_f`` instead of ``centering`` (ramped alike; needs
+            ``centering`` > 0; default none). It adds no weight either.
     """
 
     def __init__(
@@ -239,6 +244,7 @@ class ResidualObserver(nn.Module):
         offset: bool = True,
         centering: float = 0.0,
         centering_ramp: int = 0,
+        centering_factors: Mapping[str, float] | None = None,
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -278,6 +284,7 @@ class ResidualObserver(nn.Module):
         self.prior_name = str(prior_name) if prior is not None else None
         form = self._check_form(gain, offset, centering, centering_ramp)
         self.gain, self.offset, self.centering, self.centering_ramp = form
+        self.centering_factors = self._check_centering_factors(group, centering_factors)
         self._innov_dim = self.inputs.innovation_dim(group)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
@@ -348,6 +355,35 @@ class ResidualObserver(nn.Module):
                 "update is already zero at zero innovation; set centering to 0."
             )
         return float(centering)
+
+    def _check_centering_factors(self, group: LieGroup, factors) -> dict[str, float]:
+        """``centering_factors`` checked; sets ``_centering_scale``, the per-component ``c_f / c``
+        as floats (``None`` without per-factor values; a plain list, not a buffer, so that no
+        change of dtype rounds it)."""
+        factors = dict(factors or {})
+        for name, c in factors.items():
+            if name not in group.factor_names:
+                raise ValueError(
+                    f"centering_factors names a factor {name!r} that {group!r} does not have; "
+                    f"its factors are {list(group.factor_names)}."
+                )
+            if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0 <= c <= 1:
+                raise ValueError(
+                    f"centering_factors[{name!r}] must be a number in [0, 1], got {c!r}."
+                )
+        if factors and not self.centering:
+            raise ValueError(
+                f"centering_factors={factors} centres some factors otherwise, but centering is 0; "
+                "set centering (0 < c <= 1), the value of the other factors."
+            )
+        scale = None
+        if factors:
+            scale = [1.0] * group.tangent_dim
+            for name, c in factors.items():
+                cols = group.tangent_slice(name)
+                scale[cols] = [float(c) / self.centering] * (cols.stop - cols.start)
+        self._centering_scale = scale
+        return {name: float(c) for name, c in factors.items()}
 
     def _check_ramp(self, ramp: int) -> int:
         if isinstance(ramp, bool) or not isinstance(ramp, int) or ramp < 0:
@@ -497,6 +533,7 @@ class ResidualObserver(nn.Module):
             **({"offset": False} if not self.offset else {}),
             **({"centering": self.centering} if self.centering else {}),
             **({"centering_ramp": self.centering_ramp} if self.centering_ramp else {}),
+            **({"centering_factors": self.centering_factors} if self.centering_factors else {}),
         }
 
     def state_with_gain(self, state: dict, signature: dict, where: str = "checkpoint") -> dict:
@@ -678,7 +715,10 @@ class ResidualObserver(nn.Module):
             v = v[:, :n] + kv if self.offset else kv
         if self.centering:  # at z^0 the innovation is zero: the gain head's K nu drops out
             c = self.centering if centering is None else centering
-            v = v - c * out[b:, : self.group.tangent_dim]
+            at_zero = out[b:, : self.group.tangent_dim]
+            if self._centering_scale is not None:  # c_f per factor
+                at_zero = at_zero * at_zero.new_tensor(self._centering_scale)
+            v = v - c * at_zero
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
