@@ -22,6 +22,7 @@ NAMES = [
     "paper_cpu_prior_centred07_skip10_plus4",
     "paper_cpu_prior_centred085_ramp50_cosine2",
     "paper_cpu_prior_centred085_ramp50_cosine24",
+    "paper_cpu_prior_centred085_bias097_cosine16",
     "mismatch_bias_walk_prior_long1000",
     "mismatch_bias_walk",
     "mismatch_outliers",
