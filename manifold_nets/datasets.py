@@ -183,11 +183,9 @@ def load_or_generate(
     path = dataset_path(system, Path(cfg.cache_dir if cache_dir is None else cache_dir), **request)
     expected = _hash(_request_config(system, **request))
     if not cache and not (path.exists() and not cfg.regenerate):
-        ds = make_dataset(system, **request, show_progress=cfg.progress)
-        _check_generated(system, ds, path)
-        ds.validate(system.group, where=f"the data generated for {path} (not cached)")
-        log.info("generated %d x %d at sigma %g in memory (not cached)",
-                 request["num_sequences"], request["length"], request["sigma"])
+        ds, made = _generate(system, cfg, request, path)
+        log.info("generated %d x %d at sigma %g in memory (not cached) in %.2f s",
+                 request["num_sequences"], request["length"], request["sigma"], made)
         return ds.splits()
     with file_lock(path):  # parallel jobs wanting this file: one generates, the others read it
         ds = _read_or_make(system, cfg, request, path, expected)
@@ -208,10 +206,7 @@ def _read_or_make(system: System, cfg: DatasetConfig, request: dict, path: Path,
         log.info("reusing %s", path)
     else:
         start = time.perf_counter()
-        ds = make_dataset(system, **request, show_progress=cfg.progress)
-        made = time.perf_counter() - start
-        _check_generated(system, ds, path)
-        ds.validate(system.group, where=f"the data generated for {path}")
+        ds, made = _generate(system, cfg, request, path)
         save_dataset(ds, path)
         log.info(
             "generated %s (%d x %d, sigma=%g) in %.2f s, total %.2f s",
@@ -219,6 +214,17 @@ def _read_or_make(system: System, cfg: DatasetConfig, request: dict, path: Path,
             time.perf_counter() - start,
         )
     return ds
+
+
+def _generate(system: System, cfg: DatasetConfig, request: dict, path: Path):
+    """The dataset of ``request`` simulated and checked (for ``path``, not written), and the
+    seconds the simulation took."""
+    start = time.perf_counter()
+    ds = make_dataset(system, **request, show_progress=cfg.progress)
+    made = time.perf_counter() - start
+    _check_generated(system, ds, path)
+    ds.validate(system.group, where=f"the data generated for {path}")
+    return ds, made
 
 
 def _check_generated(system: System, ds: TrajectoryDataset, path: Path) -> None:

@@ -47,10 +47,10 @@ every filter's update: with exact readings the truth is a fixed point whatever t
 remembers. A ``c`` below 1 keeps part of the offset a trained observer relies on (its weights
 load unchanged at any ``c``). The core runs on twice the batch. ``centering_ramp=K`` raises
 ``c`` linearly over the first ``K`` steps (``c_k = c min(1, k / K)``), so the start-up stays
-uncentred; :attr:`ObserverState.steps` counts the steps. ``centering_factors={name: c_f}`` sets
-another ``c`` for some factors (their tangent components), ramped alike: on the rigid body, a
-bias left 15 % uncentred keeps a floor under its error where the attitude needs the offset. The same count drives the clock
-inputs (``ObserverInputs.clock``: the core reads ``tau / (tau + k)``).
+uncentred; :attr:`ObserverState.steps` counts the steps (the same count drives the clock inputs,
+``ObserverInputs.clock``: the core reads ``tau / (tau + k)``). ``centering_factors={name: c_f}``
+sets another ``c`` for some factors (their tangent components), ramped alike: on the rigid body a
+bias left 15 % uncentred keeps a floor under its error, where the attitude needs the offset.
 
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
@@ -723,12 +723,13 @@ class ResidualObserver(nn.Module):
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
 
-    def _clock_at(self, k: torch.Tensor) -> torch.Tensor | list[None]:
-        """The clock features ``(*k.shape, len(inputs.clock))`` at the step counts ``k`` in the
-        network dtype; without clock inputs, ``None`` per count."""
+    def _clocks(self, k0: int, count: int) -> torch.Tensor | list[None]:
+        """The clock features of the ``count`` steps from ``x_{k0}`` on, ``(count,
+        len(inputs.clock))`` in the network dtype; without clock inputs, ``None`` per step."""
         if not self.inputs.clock:
-            return [None] * max(1, k.numel())
-        return self.inputs.clock_features(k.to(device=self.device, dtype=self.net_dtype))
+            return [None] * count
+        k = torch.arange(k0, k0 + count, dtype=self.net_dtype, device=self.device)
+        return self.inputs.clock_features(k)
 
     def _measured_at(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
         """``context`` with each innovation factor's measured columns set to the embedding of
@@ -847,7 +848,7 @@ class ResidualObserver(nn.Module):
             self._measured(y),
             self._readings(y, u),
             self.centering_at(state.steps),
-            self._clock_at(torch.tensor([float(state.steps)]))[0],
+            self._clocks(state.steps, 1)[0],
         )
         shape = self.group.element_shape
         return ObserverState(x.view(x.shape[0], *shape), hidden, state.steps + 1)
@@ -900,8 +901,7 @@ class ResidualObserver(nn.Module):
         if k0 < self.centering_ramp:
             ks = torch.arange(k0, min(k0 + len(steps), self.centering_ramp), dtype=torch.float64)
             ramp = self.centering_at(ks).to(context).unbind(0)
-        ks = torch.arange(k0, k0 + len(steps), dtype=torch.float64)
-        clocks = self._clock_at(ks.to(context))
+        clocks = self._clocks(k0, len(steps))
         for i, (c, m, r) in enumerate(zip(steps, measured, readings)):
             ci = ramp[i] if i < len(ramp) else None
             x, hidden = step(x, hidden, c, m, r, ci, clocks[i])
