@@ -102,6 +102,12 @@ class ModelConfig:
     #: (an extension; ``manifold_nets.inputs``). ``train.init_from`` widens an observer without
     #: them (their weights start at zero). Empty: none.
     clock: list[float] = field(default_factory=list)
+    #: A framed innovation: ``{vector factor: rotation factor}``, e.g. ``{p: R}``; the core also
+    #: reads the vector factor's innovation in the rotation's estimated frame,
+    #: ``Rhat^T (p^m - phat)`` (needs the vector factor in ``innovation``; an extension;
+    #: ``manifold_nets.inputs``). ``train.init_from`` widens an observer without it (zero
+    #: weights). Empty: none.
+    innovation_frame: dict[str, str] = field(default_factory=dict)
     #: A model prior: ``none`` or ``system``, the system's nominal prediction
     #: (``System.predict``: for the rigid body the step with the bias-corrected readings) moves
     #: the estimate before the learned update, which then only corrects it (an extension).
@@ -125,6 +131,11 @@ class ModelConfig:
     #: e.g. ``{b_omega: 0.95, b_v: 0.95}``: the rigid body's biases centred more than its pose.
     #: It adds no weight. Empty: every factor at ``centering``.
     centering_factors: dict[str, float] = field(default_factory=dict)
+    #: Step-size decay for some factors, ``{factor: K_f}``: their tangent components of the step
+    #: from ``x_k`` are scaled by ``min(1, K_f / k)``, so after ``K_f`` steps they fall like
+    #: ``1 / k``, as a Kalman gain on a constant does; for factors the system keeps constant,
+    #: e.g. ``{b_omega: 50, b_v: 100}``: the rigid body's biases. It adds no weight. Empty: none.
+    step_decay: dict[str, int] = field(default_factory=dict)
     #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
     output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
@@ -169,8 +180,9 @@ class TrainSettings:
     grad_clip: Optional[float] = None
     #: The training loss, also the validation loss that picks ``best.pt``: ``mse`` (the paper's
     #: ``L``) or ``log_mse`` (the mean of each sequence's ``log L_i``: the sequences at low noise
-    #: weigh as much as the noisy ones; :mod:`manifold_nets.losses`). The test loss the train
-    #: command reports is ``L`` either way.
+    #: weigh as much as the noisy ones) or ``factor_log_mse`` (the mean of each sequence's
+    #: per-factor ``log L_if``: a product group's factors weigh alike too, whatever their
+    #: units; :mod:`manifold_nets.losses`). The test loss the train command reports is ``L``.
     loss: str = "mse"
     #: Steps left out at the start of every sequence in the training and validation loss: 1,
     #: the fixed start ``x_0`` only (the paper's ``L``); 10 matches the evaluation

@@ -70,7 +70,7 @@ from .checkpoint import (
 )
 from .config import TrainSettings
 from .data import TrajectoryDataset
-from .losses import embedding_log_mse, embedding_mse
+from .losses import embedding_factor_log_mse, embedding_log_mse, embedding_mse
 from .observer import ObserverState, ResidualObserver
 from .streaming import DataStream
 
@@ -111,8 +111,12 @@ SCHEDULES = ("constant", "cosine")
 
 #: The training losses (``train.loss``), each ``(group, estimates, states, mask=) -> scalar``:
 #: ``mse`` the paper's ``L``, ``log_mse`` the mean of each sequence's ``log L_i`` (every
-#: sequence's relative error weighs alike, whatever its noise level; :mod:`~manifold_nets.losses`).
-LOSSES = {"mse": embedding_mse, "log_mse": embedding_log_mse}
+#: sequence's relative error weighs alike, whatever its noise level), ``factor_log_mse`` the mean
+#: of each sequence's ``log L_if`` over the factors too (every factor's relative error weighs
+#: alike; :mod:`~manifold_nets.losses`).
+LOSSES = {
+    "mse": embedding_mse, "log_mse": embedding_log_mse, "factor_log_mse": embedding_factor_log_mse
+}
 
 _LOG_FIELDS = ("epoch", "train_loss", "val_loss", "best_val_loss", "best_epoch", "lr", "seconds")
 

@@ -99,7 +99,7 @@ def test_an_exact_sequence_keeps_the_loss_and_its_gradient_finite():
 
 
 def test_an_unknown_loss_is_refused_naming_the_choices():
-    assert set(LOSSES) == {"mse", "log_mse"}
+    assert {"mse", "log_mse"} <= set(LOSSES)
     check_settings(TrainSettings(loss="log_mse"))
     with pytest.raises(ValueError, match="loss='l1' is not a training loss; choose one of mse, "):
         check_settings(TrainSettings(loss="l1"))
