@@ -126,6 +126,7 @@ def build_observer(
         propagate=dict(getattr(model, "propagate", None) or {}),
         dt=dt,
         clock=tuple(getattr(model, "clock", None) or ()),
+        innovation_frame=dict(getattr(model, "innovation_frame", None) or {}),
     )
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)
     gain, offset, centering, ramp = _update_form(model, inputs)
@@ -159,6 +160,7 @@ def build_observer(
         centering=centering,
         centering_ramp=ramp,
         centering_factors=dict(getattr(model, "centering_factors", None) or {}),
+        step_decay=dict(getattr(model, "step_decay", None) or {}),
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 

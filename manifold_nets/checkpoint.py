@@ -38,8 +38,9 @@ __all__ = [
 ]
 
 FORMAT = "manifold_nets.checkpoint/1"
-#: The signature's keys of the centred update, which adds no weight (``train.init_from``).
-_CENTRING = ("centering", "centering_ramp", "centering_factors")
+#: The signature's keys of the centred update and the step decay, which add no weight
+#: (``train.init_from``).
+_CENTRING = ("centering", "centering_ramp", "centering_factors", "step_decay")
 
 
 class CheckpointError(ValueError):
@@ -214,9 +215,10 @@ def load_weights(
     With ``widen_gain`` (``train.init_from``) the checkpoint of an observer without the gain
     head also loads into the same observer with one, which then starts out computing what the
     checkpoint's does (``ResidualObserver.state_with_gain``: ``K = 0``), and the checkpoint of
-    an observer with another ``centering``, ``centering_ramp`` or ``centering_factors`` (the
-    centred update; the same weights), and the checkpoint of an observer without clock inputs into one with them
-    (``ResidualObserver.state_with_clock``: their weights zero).
+    an observer with another ``centering``, ``centering_ramp``, ``centering_factors`` or
+    ``step_decay`` (the centred update and the step decay; the same weights), and the checkpoint of an observer without clock inputs into one with them
+    (``ResidualObserver.state_with_inputs``: their weights zero), likewise without the framed
+    innovation (``model.innovation_frame``).
 
     Returns the file and the checkpoint's contents.
     """
@@ -227,9 +229,10 @@ def load_weights(
         found = {k: v for k, v in found.items() if k not in _CENTRING}
         own = model.signature()
         found.update({k: own[k] for k in _CENTRING if k in own})
-    clock = getattr(getattr(model, "inputs", None), "clock", ())
-    if widen_gain and clock and not found.get("clock"):
-        state, found = model.state_with_clock(ckpt["model"], found, where=str(path))
+    inputs = getattr(model, "inputs", None)
+    appended = inputs.appended() if hasattr(inputs, "appended") else []
+    if widen_gain and any(not found.get(key) for key, _, _ in appended):
+        state, found = model.state_with_inputs(ckpt["model"], found, where=str(path))
         ckpt = {**ckpt, "model": state}
     if widen_gain and getattr(model, "gain", False) and not found.get("gain"):
         ckpt = {**ckpt, "model": model.state_with_gain(ckpt["model"], found, where=str(path))}

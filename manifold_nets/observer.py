@@ -52,6 +52,12 @@ uncentred; :attr:`ObserverState.steps` counts the steps (the same count drives t
 sets another ``c`` for some factors (their tangent components), ramped alike: on the rigid body a
 bias left 15 % uncentred keeps a floor under its error, where the attitude needs the offset.
 
+``step_decay={name: K_f}`` scales those factors' tangent components of ``v_k`` by
+``d_k = min(1, K_f / k)``: after ``K_f`` steps their step size falls like ``1 / k``, as a Kalman
+filter's gain on a constant does (a stochastic-approximation step size). It is meant for factors
+that the system keeps constant or nearly so, such as the rigid body's biases, whose error then
+keeps falling where a constant learned gain settles at a floor. The same step count drives it.
+
 Shapes: measurements ``(N, T, measurement_dim)`` with ``measurements[:, k] = y_{k+1}``, inputs
 ``(N, T, input_dim)`` with ``inputs[:, k] = u_k`` (``None`` when ``input_dim == 0``); the rollout
 returns the estimates ``(N, T+1, *group.element_shape)``, ``xhat_0 .. xhat_T``.
@@ -223,6 +229,9 @@ class ResidualObserver(nn.Module):
         centering_factors: ``{factor name: c_f}``, each in ``[0, 1]``: those factors' tangent
             components are centred by ``c_f`` instead of ``centering`` (ramped alike; needs
             ``centering`` > 0; default none). It adds no weight either.
+        step_decay: ``{factor name: K_f}``, each an integer >= 1: those factors' tangent
+            components of ``v_k`` are scaled by ``min(1, K_f / k)`` at the step from ``x_k``
+            (default none). It adds no weight.
     """
 
     def __init__(
@@ -245,6 +254,7 @@ class ResidualObserver(nn.Module):
         centering: float = 0.0,
         centering_ramp: int = 0,
         centering_factors: Mapping[str, float] | None = None,
+        step_decay: Mapping[str, int] | None = None,
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -285,6 +295,7 @@ class ResidualObserver(nn.Module):
         form = self._check_form(gain, offset, centering, centering_ramp)
         self.gain, self.offset, self.centering, self.centering_ramp = form
         self.centering_factors = self._check_centering_factors(group, centering_factors)
+        self.step_decay = self._check_step_decay(group, step_decay)
         self._innov_dim = self.inputs.innovation_dim(group)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
@@ -397,6 +408,34 @@ class ResidualObserver(nn.Module):
             )
         return ramp
 
+    def _check_step_decay(self, group: LieGroup, decay) -> dict[str, int]:
+        """``step_decay`` checked; sets ``_decay_columns``, ``(tangent slice, K_f)`` per factor."""
+        decay = dict(decay or {})
+        for name, k in decay.items():
+            if name not in group.factor_names:
+                raise ValueError(
+                    f"step_decay names a factor {name!r} that {group!r} does not have; "
+                    f"its factors are {list(group.factor_names)}."
+                )
+            if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+                raise ValueError(
+                    f"step_decay[{name!r}] must be an integer >= 1 (the steps before the factor's "
+                    f"step size starts to fall like K / k), got {k!r}."
+                )
+        self._decay_columns = [(group.tangent_slice(n), k) for n, k in decay.items()]
+        return decay
+
+    def decay_at(self, k: torch.Tensor) -> torch.Tensor | None:
+        """``d_k``, the scale of each tangent component of the step from ``x_k``, ``(*k.shape,
+        tangent_dim)`` in ``k``'s dtype: ``min(1, K_f / k)`` on the ``step_decay`` factors, 1
+        elsewhere; ``None`` without ``step_decay``. ``k``: a floating tensor of step counts."""
+        if not self._decay_columns:
+            return None
+        d = k.new_ones((*k.shape, self.group.tangent_dim))
+        for cols, big_k in self._decay_columns:
+            d[..., cols] = (big_k / k.clamp(min=1)).clamp(max=1.0)[..., None]
+        return d
+
     def centering_at(self, k):
         """``c_k``, the centring of the step from ``x_k`` (``k`` steps taken): ``centering``,
         ramped in over the first ``centering_ramp`` steps. ``k`` an integer, or with a ramp a
@@ -442,6 +481,12 @@ class ResidualObserver(nn.Module):
             else slice(a, b) if kept is None
             else slice(kept.index(a), kept.index(a) + b - a)
             for name, (a, b) in inputs.innovation.items()
+        ]
+        # innovation_frame: (position in the innovation list, the rotation factor's slice of x)
+        names = list(inputs.innovation)
+        self._frames = [
+            (names.index(vec), group.element_slice(rot))
+            for vec, rot in inputs.innovation_frame.items()
         ]
 
     def _context(self, full: torch.Tensor) -> torch.Tensor:
@@ -534,6 +579,7 @@ class ResidualObserver(nn.Module):
             **({"centering": self.centering} if self.centering else {}),
             **({"centering_ramp": self.centering_ramp} if self.centering_ramp else {}),
             **({"centering_factors": self.centering_factors} if self.centering_factors else {}),
+            **({"step_decay": self.step_decay} if self.step_decay else {}),
         }
 
     def state_with_gain(self, state: dict, signature: dict, where: str = "checkpoint") -> dict:
@@ -574,35 +620,43 @@ class ResidualObserver(nn.Module):
             out[name] = torch.cat([old * ratio, gain.to(old.device)])
         return out
 
-    def state_with_clock(
+    def state_with_inputs(
         self, state: dict, signature: dict, where: str = "checkpoint"
     ) -> tuple[dict, dict]:
-        """A ``state_dict`` and signature for this observer with clock inputs
-        (``inputs.clock``) from one of the same observer without them: the first GRU layer's
-        input weights get a zero column per clock input, so this observer starts out computing
-        exactly what that one does (``train.init_from``). The other differences (the gain head,
-        the centring) are left to the caller's checks.
+        """A ``state_dict`` and signature for this observer from one of the same observer without
+        some of the inputs the core reads last (``inputs.appended()``: clock inputs, then the
+        framed innovation): the first GRU layer's input weights get a zero column per missing
+        input, so this observer starts out computing exactly what that one does
+        (``train.init_from``). The other differences (the gain head, the centring) are left to
+        the caller's checks.
 
-        Raises :class:`~manifold_nets.checkpoint.CheckpointError` when the checkpoint has clock
-        inputs already, or this observer has none or no :class:`~manifold_nets.cores.GRUCore`."""
+        Raises :class:`~manifold_nets.checkpoint.CheckpointError` when nothing is missing, when
+        what is missing is not the last of those inputs, or without a
+        :class:`~manifold_nets.cores.GRUCore`."""
         from .checkpoint import CheckpointError
 
-        n = len(self.inputs.clock)
-        if not n or signature.get("clock") or not isinstance(self.core, GRUCore):
+        appended = self.inputs.appended()
+        missing = [entry for entry in appended if not signature.get(entry[0])]
+        if (
+            not missing or appended[len(appended) - len(missing):] != missing
+            or not isinstance(self.core, GRUCore)
+        ):
             raise CheckpointError(
-                f"{where}: an observer's weights widen to clock inputs only into an observer "
-                "with clock inputs (model.clock) and a GRU core (model.core=gru), from one "
-                "without them."
+                f"{where}: an observer's weights widen to clock inputs (model.clock) or a framed "
+                "innovation (model.innovation_frame) only into an observer with them and a GRU "
+                "core (model.core=gru), from one without them (or without the framed innovation "
+                "only)."
             )
         name = "core.gru.weight_ih_l0"
         old = state.get(name)
         core = dict(signature.get("core", {}))
         if old is None or old.dim() != 2 or old.shape[1] != core.get("input_size"):
             raise CheckpointError(f"{where}: no first GRU layer of the checkpoint's input size.")
+        n = sum(width for _, _, width in missing)
         zeros = torch.zeros((old.shape[0], n), dtype=old.dtype, device=old.device)
         state = {**state, name: torch.cat([old, zeros], dim=1)}
         core["input_size"] = old.shape[1] + n
-        return state, {**signature, "core": core, "clock": list(self.inputs.clock)}
+        return state, {**signature, "core": core, **{key: value for key, value, _ in missing}}
 
     def extra_repr(self) -> str:
         return (
@@ -660,7 +714,7 @@ class ResidualObserver(nn.Module):
 
     def _step(
         self, x: torch.Tensor, hidden: Hidden, context: torch.Tensor, measured=(), readings=None,
-        centering=None, clock=None,
+        centering=None, clock=None, decay=None,
     ):
         """One unchecked step.
 
@@ -670,7 +724,8 @@ class ResidualObserver(nn.Module):
         state dtype (model prior only); ``centering``: the step's ``c_k`` (a number or a 0-d
         tensor; default ``self.centering``; read only when the observer is centred); ``clock``:
         the step's clock features ``(len(inputs.clock),)`` or ``(B, len(inputs.clock))`` in the
-        network dtype (clock inputs only).
+        network dtype (clock inputs only); ``decay``: the step's ``d_k`` ``(tangent_dim,)`` or
+        ``(B, tangent_dim)`` in the network dtype (``step_decay`` only).
         """
         net = context.dtype
         if self.prior is not None:
@@ -695,11 +750,18 @@ class ResidualObserver(nn.Module):
             vecs = extra[:, cols].unflatten(-1, (-1, 3))
             rotated.append((vecs @ R.transpose(-1, -2)).flatten(-2))
         tail = rotated if clock is None else [*rotated, clock.expand(x.shape[0], -1)]
-        inp = torch.cat([e, context, *innovation, *tail], dim=-1)
+        framed = [  # Rhat^T nu, as the row nu^T Rhat
+            (innovation[i].unsqueeze(-2) @ x[:, rs].unflatten(-1, (3, 3)).to(net)).squeeze(-2)
+            for i, rs in self._frames
+        ]
+        inp = torch.cat([e, context, *innovation, *tail, *framed], dim=-1)
         if self.centering:  # v = T(z) - c T(z^0): one core step on both, the hidden state from z
             b = inp.shape[0]
             zero = [torch.zeros_like(i) for i in innovation]
-            z0 = torch.cat([e, self._measured_at(x, context), *zero, *tail], dim=-1)
+            zero_framed = [torch.zeros_like(f) for f in framed]
+            z0 = torch.cat(
+                [e, self._measured_at(x, context), *zero, *tail, *zero_framed], dim=-1
+            )
             out, hidden = self.core.step(
                 torch.cat((inp, z0)), tuple(torch.cat((h, h)) for h in hidden)
             )
@@ -719,6 +781,8 @@ class ResidualObserver(nn.Module):
             if self._centering_scale is not None:  # c_f per factor
                 at_zero = at_zero * at_zero.new_tensor(self._centering_scale)
             v = v - c * at_zero
+        if decay is not None:
+            v = v * decay
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
@@ -730,6 +794,14 @@ class ResidualObserver(nn.Module):
             return [None] * count
         k = torch.arange(k0, k0 + count, dtype=self.net_dtype, device=self.device)
         return self.inputs.clock_features(k)
+
+    def _decays(self, k0: int, count: int) -> torch.Tensor | list[None]:
+        """``d_k`` of the ``count`` steps from ``x_{k0}`` on, ``(count, tangent_dim)`` in the
+        network dtype; without ``step_decay``, ``None`` per step."""
+        if not self._decay_columns:
+            return [None] * count
+        k = torch.arange(k0, k0 + count, dtype=torch.float64, device=self.device)
+        return self.decay_at(k).to(self.net_dtype)
 
     def _measured_at(self, x: torch.Tensor, context: torch.Tensor) -> torch.Tensor:
         """``context`` with each innovation factor's measured columns set to the embedding of
@@ -849,6 +921,7 @@ class ResidualObserver(nn.Module):
             self._readings(y, u),
             self.centering_at(state.steps),
             self._clocks(state.steps, 1)[0],
+            self._decays(state.steps, 1)[0],
         )
         shape = self.group.element_shape
         return ObserverState(x.view(x.shape[0], *shape), hidden, state.steps + 1)
@@ -901,10 +974,10 @@ class ResidualObserver(nn.Module):
         if k0 < self.centering_ramp:
             ks = torch.arange(k0, min(k0 + len(steps), self.centering_ramp), dtype=torch.float64)
             ramp = self.centering_at(ks).to(context).unbind(0)
-        clocks = self._clocks(k0, len(steps))
+        clocks, decays = self._clocks(k0, len(steps)), self._decays(k0, len(steps))
         for i, (c, m, r) in enumerate(zip(steps, measured, readings)):
             ci = ramp[i] if i < len(ramp) else None
-            x, hidden = step(x, hidden, c, m, r, ci, clocks[i])
+            x, hidden = step(x, hidden, c, m, r, ci, clocks[i], decays[i])
             xs.append(x)
         est = torch.stack(xs, dim=1).unflatten(-1, self.group.element_shape)
         if return_state:
