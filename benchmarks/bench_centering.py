@@ -1,7 +1,8 @@
 """A trained observer's weights under other centerings (``model.centering``, the centred update
 ``v = T(z) - c T(z^0)``; docs/comparison.md, "The centred update"), with no training, and with
-the centring ramped in over the first ``K`` steps (``model.centering_ramp``, ``--ramp``), and with
-some factors centred by their own ``c_f`` (``model.centering_factors``, ``--factors``).
+the centring ramped in over the first ``K`` steps (``model.centering_ramp``, ``--ramp``), with
+some factors centred by their own ``c_f`` (``model.centering_factors``, ``--factors``), and with
+some factors' step size decayed after ``K_f`` steps (``model.step_decay``, ``--decay``).
 
 Each observer (a run folder or a shipped one) is rebuilt at every ``c`` given, with the same
 weights, and rolls over 200 new sequences of 1000 steps of its system (seed 5) at sigma 0, 0.1
@@ -12,6 +13,8 @@ and 0.3 from the identity; the table gives the mean ``||Rhat - R||_F``, ``||phat
     python benchmarks/bench_centering.py RUN --centering 0 0.3 0.7 1 [--ramp 0 50] [--out FILE]
     python benchmarks/bench_centering.py RUN --centering 0.85 --ramp 50 \
         --factors none b_omega=0.95,b_v=0.95 b_omega=1      # "none": every factor at c
+    python benchmarks/bench_centering.py RUN --centering 0.85 --ramp 50 --factors b_omega=0.97,b_v=0.97 \
+        --decay none b_omega=50,b_v=100                     # "none": no decay
     # ~1 min per (c, K, factors)
 """
 
@@ -30,32 +33,42 @@ from manifold_nets.builders import build_observer
 SIGMAS = (0.0, 0.1, 0.3)
 
 
-def parse_factors(text: str) -> dict[str, float]:
-    """``"b_omega=0.95,b_v=0.95"`` -> ``{"b_omega": 0.95, "b_v": 0.95}``; ``"none"`` -> ``{}``."""
+def parse_factors(text: str, value=float, flag: str = "--factors") -> dict:
+    """``"b_omega=0.95,b_v=0.95"`` -> ``{"b_omega": 0.95, "b_v": 0.95}``; ``"none"`` -> ``{}``
+    (``value=int``: ``"b_v=100"`` -> ``{"b_v": 100}``, for ``--decay``)."""
     if text == "none":
         return {}
     out = {}
     for item in text.split(","):
-        name, _, value = item.partition("=")
+        name, _, number = item.partition("=")
         try:
-            out[name.strip()] = float(value)
+            out[name.strip()] = value(number)
         except ValueError:
-            raise SystemExit(f"--factors {text!r}: expected NAME=C[,NAME=C..], e.g. b_v=0.95")
+            raise SystemExit(
+                f"{flag} {text!r}: expected NAME=VALUE[,NAME=VALUE..], e.g. "
+                + ("b_v=0.95" if value is float else "b_v=100")
+            )
     return out
 
 
 def rows(
     run: str, centerings: list[float], ramps=(0,), n: int = 200, t: int = 1000, seed: int = 5,
-    factor_sets=None,
+    factor_sets=None, decay_sets=None,
 ):
     obs, system, cfg = load_observer(run)
     data = {s: system.simulate(n, t, s, torch.Generator().manual_seed(seed)) for s in SIGMAS}
-    spans = ((0, 9), (9, 12), (12, 15)) + (((15, 18),) if factor_sets else ())
-    variants = ((c, r, f) for c in centerings for r in ramps for f in factor_sets or [None])
-    for c, ramp, factors in ((c, r, f) for c, r, f in variants if c or not r):
+    wide = factor_sets or decay_sets
+    spans = ((0, 9), (9, 12), (12, 15)) + (((15, 18),) if wide else ())
+    variants = (
+        (c, r, f, d) for c in centerings for r in ramps for f in factor_sets or [None]
+        for d in decay_sets or [None]
+    )
+    for c, ramp, factors, decay in ((c, r, f, d) for c, r, f, d in variants if c or not r):
         change = {"centering": float(c), "centering_ramp": int(ramp)}
         if factors is not None:
             change["centering_factors"] = factors
+        if decay is not None:
+            change["step_decay"] = decay
         model = OmegaConf.merge(cfg.model, change)
         other = build_observer(
             system.group, system.measurement_dim, system.input_dim, model, import_core=False,
@@ -72,11 +85,13 @@ def rows(
                 for a, b in spans:
                     err = (est[..., a:b] - d.states[..., a:b]).norm(dim=-1)[:, span].mean()
                     cells.append(f"{float(err):.4g}")
-            named = "" if factors is None else " " + _describe(factors) + " |"
+            named = "".join(
+                f" {_describe(x)} |" for x in (factors, decay) if x is not None
+            )
             yield f"| {c:g} | {ramp} |{named} {sigma} | " + " | ".join(cells) + " |"
 
 
-def _describe(factors: dict[str, float]) -> str:
+def _describe(factors: dict) -> str:
     return ", ".join(f"{k} {v:g}" for k, v in factors.items()) or "-"
 
 
@@ -89,11 +104,21 @@ def main() -> None:
         "--factors", nargs="+", default=None,
         help="centering_factors variants, each NAME=C[,NAME=C..] or none",
     )
+    parser.add_argument(
+        "--decay", nargs="+", default=None,
+        help="step_decay variants, each NAME=K[,NAME=K..] or none",
+    )
     parser.add_argument("--out", default="benchmarks/results/centering.md")
     args = parser.parse_args()
     torch.set_num_threads(1)
     factor_sets = None if args.factors is None else [parse_factors(f) for f in args.factors]
-    extra = "" if args.factors is None else " --factors " + " ".join(args.factors)
+    decay_sets = (
+        None if args.decay is None else [parse_factors(d, int, "--decay") for d in args.decay]
+    )
+    extra = "".join(
+        f" --{flag} " + " ".join(given)
+        for flag, given in (("factors", args.factors), ("decay", args.decay)) if given
+    )
     lines = [
         f"# `{args.run}` at other centerings, no training (`python benchmarks/bench_centering.py "
         f"{args.run} --centering {' '.join(f'{c:g}' for c in args.centering)}"
@@ -105,13 +130,15 @@ def main() -> None:
         "| centering | ramp | sigma | R, k >= 10 | p | b_Omega | R, k >= 500 | p | b_Omega |",
         "|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
     ]
-    if factor_sets is not None:
+    if factor_sets is not None or decay_sets is not None:
+        named = [n for n, x in (("factors", factor_sets), ("decay", decay_sets)) if x is not None]
         lines[-2:] = [
-            "| centering | ramp | factors | sigma | R, k >= 10 | p | b_Omega | b_v | "
-            "R, k >= 500 | p | b_Omega | b_v |",
-            "|---:|---:|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|",
+            "| centering | ramp | " + "".join(f"{n} | " for n in named)
+            + "sigma | R, k >= 10 | p | b_Omega | b_v | R, k >= 500 | p | b_Omega | b_v |",
+            "|---:|---:|" + "---|" * len(named) + "---:|" * 9,
         ]
-    for row in rows(args.run, args.centering, args.ramp, factor_sets=factor_sets):
+    rows_ = rows(args.run, args.centering, args.ramp, factor_sets=factor_sets, decay_sets=decay_sets)
+    for row in rows_:
         lines.append(row)
         print(row, flush=True)
     out = Path(args.out)

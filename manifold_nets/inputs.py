@@ -30,6 +30,13 @@ optional extensions (both off by default):
   at ``k = tau``). A Kalman filter's gain on a constant (a bias) falls like ``1 / k`` as its
   covariance shrinks; a recurrent core without a clock has to count the steps in its state,
   and with a bounded state it tends to a constant gain, whose error stops falling.
+* ``innovation_frame = {"p": "R"}``: the core also reads a vector factor's innovation (a
+  Euclidean 3-vector with an innovation span) in the frame of a rotation factor's estimate,
+  ``Rhat^T (p^m - phat)``. The rigid body's velocity bias enters the position through ``R``
+  (``p+ = p + dt R (v^m - b_v)``): a bias error shows as a world-frame innovation
+  ``-dt R db_v``, which the core would need a product of ``vec Rhat`` and the innovation to map
+  back; in the body frame it is linear. Appended last, so ``train.init_from`` widens an
+  observer without it (zero weights).
 
 The object is plain data; :meth:`ObserverInputs.check` validates it against a group and a
 measurement size, :meth:`ObserverInputs.core_input_size` says how wide the core's input is, and
@@ -63,6 +70,8 @@ class ObserverInputs:
             factor's velocity (tangent_dim entries) for the kinematic prior.
         dt: the step length that scales ``propagate``'s velocities (seconds; needed with it).
         clock: time constants ``tau`` (steps, each > 0); the core reads ``tau / (tau + k)``.
+        innovation_frame: ``{vector factor: rotation factor}``; the core also reads the vector
+            factor's innovation rotated into the rotation factor's estimated frame.
     """
 
     innovation: Mapping[str, tuple[int, int]] = field(default_factory=dict)
@@ -71,6 +80,7 @@ class ObserverInputs:
     propagate: Mapping[str, tuple[int, int]] = field(default_factory=dict)
     dt: float | None = None
     clock: tuple[float, ...] = ()
+    innovation_frame: Mapping[str, str] = field(default_factory=dict)
 
     def __post_init__(self) -> None:
         spans = {}
@@ -106,6 +116,13 @@ class ObserverInputs:
                 )
             object.__setattr__(self, "dt", float(dt))
         object.__setattr__(self, "clock", _clock(self.clock))
+        frames = dict(self.innovation_frame or {})
+        if not all(isinstance(k, str) and isinstance(v, str) for k, v in frames.items()):
+            raise ValueError(
+                f"innovation_frame must map factor names to factor names, e.g. {{'p': 'R'}}, "
+                f"got {frames!r}."
+            )
+        object.__setattr__(self, "innovation_frame", frames)
 
     def check(self, group: LieGroup, measurement_dim: int) -> ObserverInputs:
         """Raises ``ValueError`` naming the problem unless every factor exists in ``group``, every
@@ -135,7 +152,29 @@ class ObserverInputs:
                     f"relative_only factor {name!r} has no innovation span: the core would not "
                     "see it at all. Add it to innovation ({name: [start, stop]} in y) or drop it."
                 )
+        self._check_frames(group)
         return self
+
+    def _check_frames(self, group: LieGroup) -> None:
+        names = group.factor_names
+        for vec, rot in self.innovation_frame.items():
+            for name in (vec, rot):
+                if name not in names:
+                    raise ValueError(
+                        f"innovation_frame names a factor {name!r} that {group!r} does not "
+                        f"have; its factors are {list(names)}."
+                    )
+            if vec not in self.innovation or group.factor(vec).tangent_dim != 3:
+                raise ValueError(
+                    f"innovation_frame[{vec!r}]: {vec!r} must be a 3-vector factor with an "
+                    f"innovation span (innovation: {{{vec}: [start, stop]}}), got "
+                    f"{group.factor(vec)!r}."
+                )
+            if tuple(group.factor(rot).element_shape) != (3, 3):
+                raise ValueError(
+                    f"innovation_frame[{vec!r}] = {rot!r} must be a rotation of R^3 (SO(3)), got "
+                    f"{group.factor(rot)!r}."
+                )
 
     def _check_extras(self, group: LieGroup, context_dim: int) -> None:
         """``rotated`` and ``propagate`` against the group and the ``(y, u)`` width."""
@@ -213,6 +252,7 @@ class ObserverInputs:
             + self.innovation_dim(group)
             + self.rotated_dim()
             + len(self.clock)
+            + 3 * len(self.innovation_frame)
         )
 
     def clock_features(self, k: torch.Tensor) -> torch.Tensor:
@@ -233,6 +273,19 @@ class ObserverInputs:
             out["dt"] = self.dt
         if self.clock:  # absent when empty, likewise
             out["clock"] = list(self.clock)
+        if self.innovation_frame:
+            out["innovation_frame"] = dict(self.innovation_frame)
+        return out
+
+    def appended(self) -> list[tuple[str, object, int]]:
+        """The inputs the core reads last, in order, with their signature values and widths:
+        ``("clock", [tau..], n)`` and ``("innovation_frame", {vec: rot}, 3 n)`` when set."""
+        out: list[tuple[str, object, int]] = []
+        if self.clock:
+            out.append(("clock", list(self.clock), len(self.clock)))
+        if self.innovation_frame:
+            frames = dict(self.innovation_frame)
+            out.append(("innovation_frame", frames, 3 * len(frames)))
         return out
 
 
