@@ -40,7 +40,7 @@ __all__ = [
 FORMAT = "manifold_nets.checkpoint/1"
 #: The signature's keys of the centred update and the step decay, which add no weight
 #: (``train.init_from``).
-_CENTRING = ("centering", "centering_ramp", "centering_factors", "step_decay")
+_NO_WEIGHT = ("centering", "centering_ramp", "centering_factors", "step_decay")
 
 
 class CheckpointError(ValueError):
@@ -225,10 +225,10 @@ def load_weights(
     path = resolve_checkpoint(where, name="best.pt")
     ckpt = load_checkpoint(path, map_location=map_location)
     found = ckpt["signature"]
-    if widen_gain:  # the centred update adds no weight: the same ones load at any centering
-        found = {k: v for k, v in found.items() if k not in _CENTRING}
+    if widen_gain:  # the centred update and the decay add no weight: they load across values
+        found = {k: v for k, v in found.items() if k not in _NO_WEIGHT}
         own = model.signature()
-        found.update({k: own[k] for k in _CENTRING if k in own})
+        found.update({k: own[k] for k in _NO_WEIGHT if k in own})
     inputs = getattr(model, "inputs", None)
     appended = inputs.appended() if hasattr(inputs, "appended") else []
     if widen_gain and any(not found.get(key) for key, _, _ in appended):

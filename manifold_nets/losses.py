@@ -156,10 +156,7 @@ def embedding_log_mse(
 ) -> torch.Tensor:
     """``mean_i log(L_i + eps)`` over the sequences with a kept step, ``L_i`` the embedding MSE
     of sequence ``i`` (:func:`sequence_mse`, same arguments); 0 if no sequence has one."""
-    per_seq, count = sequence_mse(group, estimates, states, skip, mask)
-    has = count > 0
-    logs = torch.log(per_seq + eps)
-    return torch.where(has, logs, torch.zeros_like(logs)).sum() / has.sum().clamp(min=1)
+    return _mean_log(*sequence_mse(group, estimates, states, skip, mask), eps)
 
 
 def embedding_factor_log_mse(
@@ -173,9 +170,16 @@ def embedding_factor_log_mse(
     """``mean_i (1/F) sum_f log(L_if + eps)`` over the sequences with a kept step, ``L_if`` the
     MSE of sequence ``i`` over factor ``f``'s embedding coordinates (:func:`factor_sequence_mse`,
     same arguments); 0 if no sequence has one. :func:`embedding_log_mse` for one factor."""
-    per, count = factor_sequence_mse(group, estimates, states, skip, mask)
+    return _mean_log(*factor_sequence_mse(group, estimates, states, skip, mask), eps)
+
+
+def _mean_log(mse: torch.Tensor, count: torch.Tensor, eps: float) -> torch.Tensor:
+    """The mean over the sequences with a kept step (``count > 0``) of ``log(mse + eps)``, first
+    averaged over the factors when ``mse`` is ``(N, F)``; 0 if no sequence has one."""
+    logs = torch.log(mse + eps)
+    if logs.dim() == 2:
+        logs = logs.mean(-1)
     has = count > 0
-    logs = torch.log(per + eps).mean(-1)
     return torch.where(has, logs, torch.zeros_like(logs)).sum() / has.sum().clamp(min=1)
 
 

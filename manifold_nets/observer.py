@@ -166,6 +166,15 @@ def core_output_size(
 # ---------------------------------------------------------------------- the observer
 
 
+def _check_factor(group: LieGroup, name: str, what: str) -> None:
+    """Raises ``ValueError`` unless ``group`` has a factor ``name`` (``what`` names the setting)."""
+    if name not in group.factor_names:
+        raise ValueError(
+            f"{what} names a factor {name!r} that {group!r} does not have; "
+            f"its factors are {list(group.factor_names)}."
+        )
+
+
 def _check_output_scale(output_scale: float) -> float:
     if (
         isinstance(output_scale, bool) or not isinstance(output_scale, (int, float))
@@ -373,11 +382,7 @@ class ResidualObserver(nn.Module):
         change of dtype rounds it)."""
         factors = dict(factors or {})
         for name, c in factors.items():
-            if name not in group.factor_names:
-                raise ValueError(
-                    f"centering_factors names a factor {name!r} that {group!r} does not have; "
-                    f"its factors are {list(group.factor_names)}."
-                )
+            _check_factor(group, name, "centering_factors")
             if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0 <= c <= 1:
                 raise ValueError(
                     f"centering_factors[{name!r}] must be a number in [0, 1], got {c!r}."
@@ -412,11 +417,7 @@ class ResidualObserver(nn.Module):
         """``step_decay`` checked; sets ``_decay_columns``, ``(tangent slice, K_f)`` per factor."""
         decay = dict(decay or {})
         for name, k in decay.items():
-            if name not in group.factor_names:
-                raise ValueError(
-                    f"step_decay names a factor {name!r} that {group!r} does not have; "
-                    f"its factors are {list(group.factor_names)}."
-                )
+            _check_factor(group, name, "step_decay")
             if isinstance(k, bool) or not isinstance(k, int) or k < 1:
                 raise ValueError(
                     f"step_decay[{name!r}] must be an integer >= 1 (the steps before the factor's "
