@@ -167,6 +167,9 @@ class NoiseConfig:
 class TrainSettings:
     """The training loop (``configs/train/``): AdamW, BPTT through the whole rollout."""
 
+    #: Epochs of training. 0 (only with ``init_from``): no step; ``init_from``'s weights are
+    #: evaluated as they are under this run's model config, e.g. another
+    #: ``model.centering_factors`` or ``model.step_decay``, which add no weight.
     epochs: int = 10
     batch_size: int = 256
     lr: float = 3.0e-4
@@ -218,7 +221,8 @@ class TrainSettings:
     #: be the same (checked); not together with ``resume``. One exception: the checkpoint of an
     #: observer without the gain head starts the same observer with one (``model.gain``) where
     #: that one is (``K = 0``; ``ResidualObserver.state_with_gain``); likewise one without the
-    #: centred update, or another ``model.centering``, starts it (the same weights).
+    #: centred update, or another ``model.centering``, starts it (the same weights). With
+    #: ``epochs=0`` the run only evaluates those weights and saves them with its own config.
     init_from: Optional[str] = None
     #: Show a progress bar with the running loss (on a terminal).
     progress: bool = True

@@ -16,7 +16,8 @@ Files written in ``out_dir``:
   the best validation loss and the history: everything to resume (``resume=``) exactly as if
   the run had not been interrupted;
 * ``checkpoints/best.pt`` whenever the validation loss improves (epoch 0 is the starting
-  model, so a best checkpoint exists from the start);
+  model, so a best checkpoint exists from the start; with ``epochs=0`` it is all there is: a
+  model whose weights came from elsewhere, validated and saved with this run's ``config``);
 * ``log.csv`` and ``log.json``: one row per epoch (train loss, validation loss, best, time).
 
 ``on_epoch(row)``, when given, is called with a copy of every new row (epoch 0 included; a
@@ -144,7 +145,12 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
         raise TypeError(
             f"settings must be a manifold_nets.TrainSettings, got {type(settings).__name__}."
         )
-    for name in ("epochs", "batch_size", "eval_batch_size"):
+    if not _is_int(settings.epochs) or settings.epochs < 0:
+        raise ValueError(
+            f"epochs must be an integer >= 0 (0: no step, the starting model is kept), got "
+            f"{settings.epochs!r}."
+        )
+    for name in ("batch_size", "eval_batch_size"):
         val = getattr(settings, name)
         if not _is_int(val) or val < 1:
             raise ValueError(f"{name} must be an integer >= 1, got {val!r}.")

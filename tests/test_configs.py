@@ -331,6 +331,38 @@ def test_init_from_fine_tunes_a_trained_model_on_other_data(tmp_path):
     assert not (tmp_path / "both" / "checkpoints").exists()
 
 
+def test_zero_epochs_from_init_from_evaluate_its_weights_under_this_runs_config(tmp_path):
+    """``train.epochs=0``: a trained model's weights, evaluated as they are under a weight-free
+    setting of this run (here the step-size decay) and saved with this run's config."""
+    cache = tmp_path / "data"
+    run(_compose(*_tiny(cache)), tmp_path / "first")
+    decay = "++model.step_decay={b_v:3}"
+    m = run(
+        _compose(*_tiny(cache, "train.epochs=0", decay, f"train.init_from={tmp_path / 'first'}")),
+        tmp_path / "as_is",
+    )
+    log = json.loads((tmp_path / "as_is" / "log.json").read_text())
+    assert [r["epoch"] for r in log] == [0] and m["best_epoch"] == 0
+    assert not (tmp_path / "as_is" / "checkpoints" / "last.pt").exists()
+    first, as_is = (
+        torch.load(tmp_path / d / "checkpoints" / "best.pt", weights_only=True)
+        for d in ("first", "as_is")
+    )
+    assert as_is["config"]["model"]["step_decay"] == {"b_v": 3}
+    assert "step_decay" not in first["config"]["model"] or not first["config"]["model"]["step_decay"]
+    for name, w in first["model"].items():
+        assert torch.equal(as_is["model"][name], w), name
+    # the decay acts: the same weights evaluate otherwise than the first run's
+    row = m["table"][0]
+    first_row = json.loads((tmp_path / "first" / "results" / "metrics.json").read_text())["table"][0]
+    assert row["b_v est"] != first_row["b_v est"]
+    # the saved folder is a checkpoint of the decayed observer: eval.checkpoint loads it as is
+    again = run(
+        _compose(*_tiny(cache, decay, f"eval.checkpoint={tmp_path / 'as_is'}")), tmp_path / "again"
+    )
+    assert again["table"][0]["b_v est"] == row["b_v est"]
+
+
 def test_noise_levels_mix_measurements_per_sequence(tmp_path):
     from hydra.utils import instantiate
 
@@ -364,7 +396,10 @@ def test_noise_levels_mix_measurements_per_sequence(tmp_path):
         ("train.grad_clip=0", "train.grad_clip must be > 0 or None (null: no clipping), got 0.0"),
         ("train.max_batches=0", "train.max_batches must be an integer >= 1 or None (null: the "
                                 "whole training split), got 0."),
-        ("train.epochs=0", "train.epochs must be an integer >= 1, got 0."),
+        ("train.epochs=-1", "train.epochs must be an integer >= 0 (0: no step, the starting "
+                            "model is kept), got -1."),
+        ("train.epochs=0", "train.epochs=0 trains nothing: it evaluates train.init_from's "
+                           "weights as they are"),
         ("train.threads=0", "train.threads must be an integer >= 1 or None (null: torch's "
                             "default), got 0."),
         ("train.device=tpu", "train.device='tpu' is not a device; use cpu, cuda, cuda:<index> "

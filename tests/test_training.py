@@ -264,7 +264,9 @@ def test_evaluation_table_and_figure(tmp_path):
 @pytest.mark.parametrize(
     "kwargs, message",
     [
-        ({"epochs": 0}, "epochs must be an integer >= 1, got 0."),
+        ({"epochs": -1}, "epochs must be an integer >= 0 (0: no step, the starting model is "
+                         "kept), got -1."),
+        ({"batch_size": 0}, "batch_size must be an integer >= 1, got 0."),
         ({"max_batches": 0}, "max_batches must be an integer >= 1 or None (null: the whole "
                              "training split), got 0."),
         ({"grad_clip": -1.0}, "grad_clip must be > 0 or None (null: no clipping), got -1.0"),
@@ -273,12 +275,24 @@ def test_evaluation_table_and_figure(tmp_path):
     ],
 )
 def test_nonsense_settings_fail_before_any_work(tmp_path, kwargs, message):
-    # max_batches=0 made no optimizer step and logged a loss of 0.0; epochs=0 kept the untrained
-    # model as "learned"; a negative grad_clip ascends, zero freezes the model
+    # max_batches=0 made no optimizer step and logged a loss of 0.0; a negative grad_clip
+    # ascends, zero freezes the model (epochs=0 is meant: the next test)
     with pytest.raises(ValueError) as err:
         train_model(make_model(), make_data(8), make_data(4, seed=1), tmp_path / "run", **kwargs)
     assert str(err.value).startswith(message)
     assert not (tmp_path / "run").exists()
+
+
+def test_zero_epochs_validate_and_save_the_starting_model_only(tmp_path):
+    # the train command's epochs=0 with init_from: a model's weights from elsewhere, as they are
+    model = make_model()
+    before = {k: v.clone() for k, v in model.state_dict().items()}
+    res = train_model(model, make_data(8), make_data(4, seed=1), tmp_path / "run", epochs=0)
+    assert res.best_epoch == 0 and [r["epoch"] for r in res.history] == [0]
+    assert res.last_path is None and not (tmp_path / "run" / "checkpoints" / "last.pt").exists()
+    saved = torch.load(res.best_path, weights_only=True)["model"]
+    for k, v in before.items():
+        assert torch.equal(model.state_dict()[k], v) and torch.equal(saved[k], v), k
 
 
 def nan_model():

@@ -113,6 +113,12 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
         check_settings(OmegaConf.to_object(cfg.train))
     except ValueError as err:  # the library names its parameter first: name the config key
         raise ValueError(f"train.{err}") from None
+    if cfg.train.epochs == 0 and not cfg.train.init_from and _trains(cfg):
+        raise ValueError(
+            "train.epochs=0 trains nothing: it evaluates train.init_from's weights as they are "
+            "(e.g. under another model.centering_factors or model.step_decay, which add no "
+            "weight); give train.init_from=<run folder or checkpoint>, or set train.epochs >= 1."
+        )
     if cfg.train.init_from and cfg.train.resume:
         raise ValueError(
             f"train.init_from={cfg.train.init_from!r} and train.resume={cfg.train.resume!r}: "
@@ -130,6 +136,11 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
             "method=untrained evaluates the observer at its initialisation; it cannot load "
             f"eval.checkpoint={cfg.eval.checkpoint!r} (use method=learned for that)."
         )
+
+
+def _trains(cfg: DictConfig) -> bool:
+    """Whether the run trains an observer (a learned method without ``eval.checkpoint``)."""
+    return cfg.method.name == "learned" and not cfg.method.target and not cfg.eval.checkpoint
 
 
 def _no_loss_to_return(cfg: DictConfig) -> str | None:
