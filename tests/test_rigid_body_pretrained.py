@@ -24,6 +24,7 @@ NAMES = [
     "paper_cpu_prior_centred085_ramp50_cosine24",
     "paper_cpu_prior_centred085_bias097_cosine16",
     "paper_cpu_prior_centred085_bias097_decay16_frame_factor_log",
+    "paper_cpu_prior_centred085_low2_bv099_k70",
     "mismatch_bias_walk_prior_long1000",
     "mismatch_bias_walk",
     "mismatch_outliers",
