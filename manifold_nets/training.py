@@ -604,7 +604,7 @@ class _Trainer:
         state = initial_state(model, batch, self.start_fn)
         if state is None:
             state = model.init_state(len(batch))
-        total, steps = 0.0, 0
+        total, length = 0.0, batch.length
         for i, piece in enumerate(_chunks(batch, self.settings.tbptt)):
             inputs = piece.inputs if piece.inputs.shape[-1] else None
             est, state = model(piece.measurements, inputs, state=state, return_state=True)
@@ -615,12 +615,11 @@ class _Trainer:
             value = self.optimise(loss)
             if not math.isfinite(value):
                 return value
-            total += value * piece.length
-            steps += piece.length
+            total += value * (piece.length / length)  # one piece: its value, to the last bit
             state = state._replace(
                 estimate=state.estimate.detach(), hidden=tuple(h.detach() for h in state.hidden)
             )
-        return total / steps
+        return total
 
     def result(self) -> FitResult:
         last = self.last_path if self.last_path.is_file() else None
