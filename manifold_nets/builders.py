@@ -127,6 +127,7 @@ def build_observer(
         dt=dt,
         clock=tuple(getattr(model, "clock", None) or ()),
         innovation_frame=dict(getattr(model, "innovation_frame", None) or {}),
+        prior_drive=system.drive_dim if _prior_drive(model, prior) else 0,
     )
     in_size = inputs.core_input_size(group, measurement_dim, input_dim)
     gain, offset, centering, ramp = _update_form(model, inputs)
@@ -155,6 +156,7 @@ def build_observer(
         state_dtype=torch_dtype(model.state_dtype, "model.state_dtype"),
         output_scale=float(getattr(model, "output_scale", 1.0)),
         prior=prior,
+        prior_drive=system.compensated_drive if inputs.prior_drive else None,
         gain=gain,
         offset=offset,
         centering=centering,
@@ -235,6 +237,20 @@ def _model_prior(model: ModelConfig | Any, system: System | None):
             f"model.relax={list(model.relax)} (factors taken off the group)."
         )
     return system.predict
+
+
+def _prior_drive(model: ModelConfig | Any, prior) -> bool:
+    """``model.prior_drive``, checked: a boolean, and only with a model prior."""
+    on = getattr(model, "prior_drive", False)
+    if not isinstance(on, bool):
+        raise ValueError(f"model.prior_drive must be true or false, got {on!r}.")
+    if on and prior is None:
+        raise ValueError(
+            "model.prior_drive=true has the core read the drive the model prior integrates, "
+            "but there is no model prior; set model.prior=system (model=small_relative_prior) "
+            "or model.prior_drive=false."
+        )
+    return on
 
 
 def build_estimator_factory(system: System, method: MethodConfig | Any) -> Callable[..., Any]:

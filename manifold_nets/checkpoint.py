@@ -218,7 +218,7 @@ def load_weights(
     an observer with another ``centering``, ``centering_ramp``, ``centering_factors`` or
     ``step_decay`` (the centred update and the step decay; the same weights), and the checkpoint of an observer without clock inputs into one with them
     (``ResidualObserver.state_with_inputs``: their weights zero), likewise without the framed
-    innovation (``model.innovation_frame``).
+    innovation (``model.innovation_frame``) or the prior's drive (``model.prior_drive``).
 
     Returns the file and the checkpoint's contents.
     """

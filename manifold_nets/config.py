@@ -112,6 +112,11 @@ class ModelConfig:
     #: (``System.predict``: for the rigid body the step with the bias-corrected readings) moves
     #: the estimate before the learned update, which then only corrects it (an extension).
     prior: str = "none"
+    #: With ``prior: system``, the core also reads the drive the prior integrated,
+    #: ``System.compensated_drive`` (the rigid body's bias-corrected readings), last: an
+    #: outlying reading is then a plain input (an extension; ``manifold_nets.inputs``).
+    #: ``train.init_from`` widens an observer without it (zero weights).
+    prior_drive: bool = False
     #: The gain head: the core outputs an offset ``a`` and a gain ``K`` and the update is
     #: ``v = a + K nu``, ``nu`` the innovation (needs ``innovation``; an extension).
     gain: bool = False

@@ -35,8 +35,14 @@ optional extensions (both off by default):
   ``Rhat^T (p^m - phat)``. The rigid body's velocity bias enters the position through ``R``
   (``p+ = p + dt R (v^m - b_v)``): a bias error shows as a world-frame innovation
   ``-dt R db_v``, which the core would need a product of ``vec Rhat`` and the innovation to map
-  back; in the body frame it is linear. Appended last, so ``train.init_from`` widens an
-  observer without it (zero weights).
+  back; in the body frame it is linear. Appended after the clock, so ``train.init_from``
+  widens an observer without it (zero weights).
+* ``prior_drive = 6``: with a model prior, the core also reads the drive the prior integrated,
+  ``System.compensated_drive(xhat_k, y_{k+1}, u_k)`` (the rigid body's bias-corrected readings
+  ``(Omega^m - bhat_Omega, v^m - bhat_v)``), that many entries. A reading far outside what the
+  motion can do (an outlier) is then a plain input, where from ``y`` and ``embed(xhat)`` the
+  network would first have to learn the difference of two large numbers. Appended last;
+  ``train.init_from`` widens an observer without it (zero weights).
 
 The object is plain data; :meth:`ObserverInputs.check` validates it against a group and a
 measurement size, :meth:`ObserverInputs.core_input_size` says how wide the core's input is, and
@@ -72,6 +78,9 @@ class ObserverInputs:
         clock: time constants ``tau`` (steps, each > 0); the core reads ``tau / (tau + k)``.
         innovation_frame: ``{vector factor: rotation factor}``; the core also reads the vector
             factor's innovation rotated into the rotation factor's estimated frame.
+        prior_drive: the width of the model prior's compensated drive the core also reads
+            (the system's ``drive_dim``; 0: none). The observer computes it with the callable
+            it is given (``ResidualObserver(prior_drive=system.compensated_drive)``).
     """
 
     innovation: Mapping[str, tuple[int, int]] = field(default_factory=dict)
@@ -81,6 +90,7 @@ class ObserverInputs:
     dt: float | None = None
     clock: tuple[float, ...] = ()
     innovation_frame: Mapping[str, str] = field(default_factory=dict)
+    prior_drive: int = 0
 
     def __post_init__(self) -> None:
         spans = {}
@@ -123,6 +133,12 @@ class ObserverInputs:
                 f"got {frames!r}."
             )
         object.__setattr__(self, "innovation_frame", frames)
+        width = self.prior_drive
+        if isinstance(width, bool) or not isinstance(width, int) or width < 0:
+            raise ValueError(
+                f"prior_drive must be the width of the prior's drive (an integer >= 0, the "
+                f"system's drive_dim; 0: none), got {width!r}."
+            )
 
     def check(self, group: LieGroup, measurement_dim: int) -> ObserverInputs:
         """Raises ``ValueError`` naming the problem unless every factor exists in ``group``, every
@@ -253,6 +269,7 @@ class ObserverInputs:
             + self.rotated_dim()
             + len(self.clock)
             + 3 * len(self.innovation_frame)
+            + self.prior_drive
         )
 
     def clock_features(self, k: torch.Tensor) -> torch.Tensor:
@@ -275,17 +292,22 @@ class ObserverInputs:
             out["clock"] = list(self.clock)
         if self.innovation_frame:
             out["innovation_frame"] = dict(self.innovation_frame)
+        if self.prior_drive:
+            out["prior_drive"] = self.prior_drive
         return out
 
     def appended(self) -> list[tuple[str, object, int]]:
         """The inputs the core reads last, in order, with their signature values and widths:
-        ``("clock", [tau..], n)`` and ``("innovation_frame", {vec: rot}, 3 n)`` when set."""
+        ``("clock", [tau..], n)``, ``("innovation_frame", {vec: rot}, 3 n)`` and
+        ``("prior_drive", n, n)`` when set."""
         out: list[tuple[str, object, int]] = []
         if self.clock:
             out.append(("clock", list(self.clock), len(self.clock)))
         if self.innovation_frame:
             frames = dict(self.innovation_frame)
             out.append(("innovation_frame", frames, 3 * len(frames)))
+        if self.prior_drive:
+            out.append(("prior_drive", self.prior_drive, self.prior_drive))
         return out
 
 

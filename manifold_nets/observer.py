@@ -24,7 +24,10 @@ prediction: ``xhat_{k+1} = xhat_k^- · exp(v_k)`` (or ``exp(v_k) · xhat_k^-`` f
 A *model prior* (``prior``, e.g. a system's :meth:`~manifold_nets.system.System.predict`) does the
 same with the whole nominal model, ``xhat_k^- = prior(xhat_k, y_{k+1}, u_k)`` (for the rigid body
 the step with the bias-corrected readings): the core then learns what a filter's update adds to
-the model's prediction, not the prediction.
+the model's prediction, not the prediction. With ``prior_drive`` (a system's
+:meth:`~manifold_nets.system.System.compensated_drive`, and ``inputs.prior_drive`` its width) the
+core also reads the drive that prediction integrated, so a reading the motion cannot produce (an
+outlier) is a plain input.
 
 A *gain head* (``gain=True``, needs innovation inputs) makes the core's output a Kalman-type
 update: the core outputs an offset ``a_k`` and a gain matrix ``K_k`` (``tangent_dim`` x the
@@ -219,6 +222,9 @@ class ResidualObserver(nn.Module):
             in the state dtype (a system's ``predict``; differentiable in ``x``); ``None``: none.
             A checkpoint's signature records that there is one (``prior_name``), not what it is.
         prior_name: what the signature calls the prior (default ``"system"``: ``System.predict``).
+        prior_drive: with ``inputs.prior_drive`` (its width), the drive the prior integrates,
+            ``prior_drive(x, y, u) -> (B, inputs.prior_drive)`` in the state dtype (a system's
+            ``compensated_drive``), which the core also reads, last; ``None``: none.
         gain: the gain head: the core outputs ``(a, K)``, ``tangent_dim * (1 + innovation
             width)`` numbers, and ``v = a + K nu`` (see the module docstring; needs
             ``inputs.innovation``). :func:`core_output_size` says how wide the core's output is.
@@ -258,6 +264,7 @@ class ResidualObserver(nn.Module):
         output_scale: float = 1.0,
         prior: Callable[..., torch.Tensor] | None = None,
         prior_name: str = "system",
+        prior_drive: Callable[..., torch.Tensor] | None = None,
         gain: bool = False,
         offset: bool = True,
         centering: float = 0.0,
@@ -289,17 +296,7 @@ class ResidualObserver(nn.Module):
         self.input_dim = input_dim
         self.state_dtype = state_dtype
         self.inputs = inputs.check(group, measurement_dim)
-        if prior is not None and not callable(prior):
-            raise TypeError(
-                f"prior must be a callable (x, y, u) -> x^- such as system.predict, got "
-                f"{type(prior).__name__}."
-            )
-        if prior is not None and self.inputs.propagate:
-            raise ValueError(
-                "prior and inputs.propagate are two kinematic priors; use one (prior: the whole "
-                "nominal model, e.g. system.predict; propagate: a factor moved by a measured rate)."
-            )
-        self.prior = prior
+        self.prior, self.prior_drive = self._check_prior(prior, prior_drive)
         self.prior_name = str(prior_name) if prior is not None else None
         form = self._check_form(gain, offset, centering, centering_ramp)
         self.gain, self.offset, self.centering, self.centering_ramp = form
@@ -322,6 +319,28 @@ class ResidualObserver(nn.Module):
             self._zero_gain(self.core)
         self._setup_extras(group, self.inputs)
         self._compiled_step = None
+
+    def _check_prior(self, prior, drive) -> tuple:
+        """``prior`` and ``prior_drive``, checked against each other and the inputs."""
+        for name, fn, what in (("prior", prior, "x^- such as system.predict"),
+                               ("prior_drive", drive, "drive such as system.compensated_drive")):
+            if fn is not None and not callable(fn):
+                raise TypeError(
+                    f"{name} must be a callable (x, y, u) -> {what}, got {type(fn).__name__}."
+                )
+        if prior is not None and self.inputs.propagate:
+            raise ValueError(
+                "prior and inputs.propagate are two kinematic priors; use one (prior: the whole "
+                "nominal model, e.g. system.predict; propagate: a factor moved by a measured rate)."
+            )
+        if bool(self.inputs.prior_drive) != (drive is not None) or (drive and prior is None):
+            raise ValueError(
+                "the core reads the prior's drive with a model prior, inputs.prior_drive (its "
+                "width) and prior_drive (the callable, e.g. system.compensated_drive) together; "
+                f"got prior={'set' if prior else None}, inputs.prior_drive="
+                f"{self.inputs.prior_drive}, prior_drive={'set' if drive else None}."
+            )
+        return prior, drive
 
     def _check_gain(self, gain: bool, offset: bool) -> tuple[bool, bool]:
         if not isinstance(gain, bool):
@@ -625,8 +644,8 @@ class ResidualObserver(nn.Module):
         self, state: dict, signature: dict, where: str = "checkpoint"
     ) -> tuple[dict, dict]:
         """A ``state_dict`` and signature for this observer from one of the same observer without
-        some of the inputs the core reads last (``inputs.appended()``: clock inputs, then the
-        framed innovation): the first GRU layer's input weights get a zero column per missing
+        some of the inputs the core reads last (``inputs.appended()``: clock inputs, the framed
+        innovation, then the prior's drive): the first GRU layer's input weights get a zero column per missing
         input, so this observer starts out computing exactly what that one does
         (``train.init_from``). The other differences (the gain head, the centring) are left to
         the caller's checks.
@@ -643,10 +662,10 @@ class ResidualObserver(nn.Module):
             or not isinstance(self.core, GRUCore)
         ):
             raise CheckpointError(
-                f"{where}: an observer's weights widen to clock inputs (model.clock) or a framed "
-                "innovation (model.innovation_frame) only into an observer with them and a GRU "
-                "core (model.core=gru), from one without them (or without the framed innovation "
-                "only)."
+                f"{where}: an observer's weights widen to clock inputs (model.clock), a framed "
+                "innovation (model.innovation_frame) or the prior's drive (model.prior_drive) "
+                "only into an observer with them and a GRU core (model.core=gru), from one "
+                "without the last of them, in that order (clock, innovation_frame, prior_drive)."
             )
         name = "core.gru.weight_ih_l0"
         old = state.get(name)
@@ -729,10 +748,14 @@ class ResidualObserver(nn.Module):
         ``(B, tangent_dim)`` in the network dtype (``step_decay`` only).
         """
         net = context.dtype
+        drive = []
         if self.prior is not None:
             y = readings[:, : self.measurement_dim]
             u = readings[:, self.measurement_dim :] if self.input_dim else None
-            x = self.prior(x.unflatten(-1, self.group.element_shape), y, u).flatten(1)
+            x = x.unflatten(-1, self.group.element_shape)
+            if self.prior_drive is not None:  # what the prior integrates, from x_k
+                drive = [self.prior_drive(x, y, u).to(net)]
+            x = self.prior(x, y, u).flatten(1)
         extra = None
         if self._num_extra:
             context, extra = context[:, : -self._num_extra], context[:, -self._num_extra :]
@@ -755,13 +778,13 @@ class ResidualObserver(nn.Module):
             (innovation[i].unsqueeze(-2) @ x[:, rs].unflatten(-1, (3, 3)).to(net)).squeeze(-2)
             for i, rs in self._frames
         ]
-        inp = torch.cat([e, context, *innovation, *tail, *framed], dim=-1)
+        inp = torch.cat([e, context, *innovation, *tail, *framed, *drive], dim=-1)
         if self.centering:  # v = T(z) - c T(z^0): one core step on both, the hidden state from z
             b = inp.shape[0]
             zero = [torch.zeros_like(i) for i in innovation]
             zero_framed = [torch.zeros_like(f) for f in framed]
             z0 = torch.cat(
-                [e, self._measured_at(x, context), *zero, *tail, *zero_framed], dim=-1
+                [e, self._measured_at(x, context), *zero, *tail, *zero_framed, *drive], dim=-1
             )
             out, hidden = self.core.step(
                 torch.cat((inp, z0)), tuple(torch.cat((h, h)) for h in hidden)

@@ -364,6 +364,19 @@ class System(abc.ABC):
             f"drive is read from the measurement and input (e.g. velocity readings in y)."
         )
 
+    def compensated_drive(
+        self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None
+    ) -> torch.Tensor:
+        """The drive the prediction integrates, ``(*batch, drive_dim)``: the readings of
+        ``y_{k+1}``, ``u_k`` compensated by the estimate ``x_k``.
+
+        Default: :meth:`drive_from_measurement`, the drive as read. A system whose readings
+        carry biases held in the state subtracts the estimate's (the rigid body:
+        ``(Omega^m - bhat_Omega, v^m - bhat_v)``); it must stay differentiable in ``x``. The
+        learned observer's core reads it with ``model.prior_drive=true``.
+        """
+        return self.drive_from_measurement(y, u)
+
     def predict(self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor:
         """The nominal model's prediction ``x_{k+1}^-`` from an estimate ``x_k`` and the step's
         readings ``y_{k+1}``, ``u_k``: what a filter's predict step computes.
@@ -371,12 +384,12 @@ class System(abc.ABC):
         ``x`` ``(*batch, *element_shape)``, ``y`` ``(*batch, measurement_dim)``, ``u``
         ``(*batch, input_dim)`` or ``None``; returns ``(*batch, *element_shape)``. The learned
         observer's model prior (``model.prior=system``) moves its estimate by this before the
-        network's correction. Default: ``step(x, drive_from_measurement(y, u))``, dead reckoning
-        on the drive as read. A system whose readings carry biases held in the state subtracts
-        the estimate's (the rigid body: ``Omega^m - bhat_Omega``); it must stay differentiable
-        in ``x`` (the observer is trained through it).
+        network's correction. Default: ``step(x, compensated_drive(x, y, u))``, the step on the
+        readings less what the estimate says of their errors (for a system without such states,
+        dead reckoning on the drive as read). It must stay differentiable in ``x`` (the
+        observer is trained through it).
         """
-        return self.step(x, self.drive_from_measurement(y, u))
+        return self.step(x, self.compensated_drive(x, y, u))
 
     def estimators(self) -> dict[str, Callable[..., Any]]:
         """The classical estimators of this system by name: ``{name: factory}``.

@@ -1,4 +1,4 @@
-"""Shared test helpers for observer options: rollout = online = exported step; a tiny train
+"""Shared test helpers for observer options: rollout = online = pieces = exported step; a tiny train
 command run loaded back; a small SO(3) dataset."""
 
 from __future__ import annotations
@@ -27,6 +27,27 @@ def assert_online_matches_rollout(obs, measurements: torch.Tensor, atol: float =
         for k in range(t):
             x, *hidden = step(x, *hidden, measurements[:, k])
     assert torch.allclose(x, est[:, -1].reshape(n, -1), atol=atol)
+    return est
+
+
+def assert_pieces_and_export_match(obs, measurements: torch.Tensor, tmp_path, split: int = 4):
+    """:func:`assert_online_matches_rollout`, then the rollout in two pieces (the state carried at
+    ``split``) and the exported step (``export_observer``) against it. Returns the estimates."""
+    from manifold_nets import export_observer
+    from manifold_nets.deploy import load_exported_step
+
+    n, t = measurements.shape[:2]
+    est = assert_online_matches_rollout(obs, measurements, atol=1e-10)
+    with torch.no_grad():
+        head, state = obs(measurements[:, :split], return_state=True)
+        tail = obs(measurements[:, split:], state=state)
+    torch.testing.assert_close(torch.cat([head, tail[:, 1:]], 1), est, rtol=0, atol=1e-12)
+    export_observer(obs, tmp_path / "step.pt2")
+    step = load_exported_step(tmp_path / "step.pt2")
+    x, *state = step.initial_state(n)
+    for k in range(t):
+        x, *state = step(x, *state, measurements[:, k])
+    torch.testing.assert_close(x, est[:, -1].reshape(n, -1), rtol=0, atol=1e-10)
     return est
 
 

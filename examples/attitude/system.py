@@ -233,9 +233,12 @@ class Attitude(System):
         _check_last(y, 9, "measurements")
         return y[..., 6:]
 
-    def predict(self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor:
-        """The prediction from the bias-corrected gyro: :meth:`step` with ``Omega^m - bhat``."""
-        return self.step(x, self.drive_from_measurement(y, u) - x[..., 9:])
+    def compensated_drive(
+        self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None
+    ) -> torch.Tensor:
+        """The bias-corrected gyro ``Omega^m - bhat``, ``(*batch, 3)``: what the prediction
+        (:meth:`~manifold_nets.system.System.predict`) steps with."""
+        return self.drive_from_measurement(y, u) - x[..., 9:]
 
     def metrics(self, estimates: torch.Tensor, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """The per-factor errors (``R``: ``||Rhat - R||_F``; ``b_omega``: ``||bhat - b||`` rad/s)

@@ -298,10 +298,12 @@ class Planar(System):
         _check_last(y, 4, "measurements")
         return y[..., 2:]
 
-    def predict(self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor:
-        """The prediction from the bias-corrected odometry: :meth:`step` with
-        ``(v^m - bhat_v, omega^m - bhat_omega)``."""
-        return self.step(x, self.drive_from_measurement(y, u) - x[..., -2:])
+    def compensated_drive(
+        self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None
+    ) -> torch.Tensor:
+        """The bias-corrected odometry ``(v^m - bhat_v, omega^m - bhat_omega)``, ``(*batch, 2)``:
+        what the prediction (:meth:`~manifold_nets.system.System.predict`) steps with."""
+        return self.drive_from_measurement(y, u) - x[..., -2:]
 
     def metrics(self, estimates: torch.Tensor, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """The per-factor errors (``pose``, or ``R`` and ``p``: embedding norms; ``b_v`` m/s;

@@ -347,10 +347,13 @@ class RigidBody(System):
         _check_last(y, 18, "measurement")
         return y[..., 12:]
 
-    def predict(self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None) -> torch.Tensor:
-        """The prediction from the bias-corrected readings: :meth:`step` with the drive
-        ``(Omega^m - bhat_Omega, v^m - bhat_v)``, the biases kept (an EKF's predict step)."""
-        return self.step(x, self.drive_from_measurement(y, u) - self.biases(x))
+    def compensated_drive(
+        self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor | None
+    ) -> torch.Tensor:
+        """The bias-corrected readings ``(Omega^m - bhat_Omega, v^m - bhat_v)``, ``(*batch, 6)``:
+        what :meth:`~manifold_nets.system.System.predict` steps with, the biases kept (an EKF's
+        predict step)."""
+        return self.drive_from_measurement(y, u) - self.biases(x)
 
     def metrics(self, estimates: torch.Tensor, data: TrajectoryDataset) -> dict[str, torch.Tensor]:
         """``R`` (``||Rhat - R||_F``), ``p`` (``||phat - p||``), ``b_omega``, ``b_v`` (vector
