@@ -4,8 +4,9 @@ framed innovation (``model.innovation_frame``) or the prior's drive (``model.pri
 The observer (a run folder or a shipped one) rolls over ``--sequences`` new sequences of 1000
 steps of its own system (seed 5) at each sigma, once as trained and once with the first GRU
 layer's weights on that input's columns set to zero (what it computed before
-``train.init_from`` widened it); the table gives the mean errors over steps >= 10 and the change.
-A change near zero says the trained weights do not use the input::
+``train.init_from`` widened it); the table gives the mean errors over steps >= 10 and the change,
+and the header the norms of those weight columns against the other columns'. A change near zero
+says the trained weights do not use the input::
 
     python benchmarks/bench_input_ablation.py RUN --input prior_drive --sigmas 0.1 0.3 \
         [--sequences 300] [--out FILE]      # about 20 s per sigma on one core
@@ -21,6 +22,7 @@ import torch
 import manifold_nets_examples.rigid_body  # noqa: F401  (registers the systems)
 from manifold_nets import load_observer
 from manifold_nets.cores import GRUCore
+from manifold_nets.evaluation import evaluate
 
 
 def input_columns(obs, name: str) -> slice:
@@ -31,16 +33,14 @@ def input_columns(obs, name: str) -> slice:
         raise SystemExit(f"the observer reads no {name!r} input; it appends {names or 'none'}.")
     if not isinstance(obs.core, GRUCore):
         raise SystemExit("the ablation zeroes a GRU core's first-layer weights; this core is not one.")
-    after = sum(width for key, _, width in appended[names.index(name) + 1:])
-    width = dict((key, w) for key, _, w in appended)[name]
-    stop = obs.core.input_size - after
-    return slice(stop - width, stop)
+    i = names.index(name)
+    stop = obs.core.input_size - sum(width for *_, width in appended[i + 1:])
+    return slice(stop - appended[i][2], stop)
 
 
 def errors(obs, system, data) -> dict[str, float]:
-    with torch.inference_mode():
-        est = obs(data.measurements)
-    return {k: float(v[:, 10:].mean()) for k, v in system.metrics(est, data).items()}
+    row = evaluate(obs, data, system).row
+    return {k[: -len(" est")]: v for k, v in row.items() if k.endswith(" est")}
 
 
 def main() -> None:
@@ -55,6 +55,9 @@ def main() -> None:
     obs, system, _ = load_observer(args.run)
     obs.eval()
     cols = input_columns(obs, args.input)
+    weight = obs.core.gru.weight_ih_l0
+    norms = weight.detach().norm(dim=0)
+    others = torch.cat([norms[: cols.start], norms[cols.stop :]])
     lines = [
         f"# `{args.input}` zeroed in a trained observer",
         "",
@@ -63,10 +66,12 @@ def main() -> None:
         f"{cols.start}-{cols.stop - 1} of the core's input; {args.sequences} x 1000 per sigma of "
         f"{type(system).__name__}, seed 5, steps >= 10; torch {torch.__version__}, one thread)",
         "",
+        f"Norm of each of its weight columns: {', '.join(f'{v:.4f}' for v in norms[cols].tolist())}; "
+        f"the other {len(others)} columns: {float(others.mean()):.4f} on average.",
+        "",
         "| sigma | factor | as trained | input zeroed | change |",
         "|---:|---|---:|---:|---:|",
     ]
-    weight = obs.core.gru.weight_ih_l0
     for sigma in args.sigmas:
         data = system.simulate(args.sequences, 1000, sigma, torch.Generator().manual_seed(5))
         trained = errors(obs, system, data)

@@ -333,12 +333,14 @@ class ResidualObserver(nn.Module):
                 "prior and inputs.propagate are two kinematic priors; use one (prior: the whole "
                 "nominal model, e.g. system.predict; propagate: a factor moved by a measured rate)."
             )
-        if bool(self.inputs.prior_drive) != (drive is not None) or (drive and prior is None):
+        if bool(self.inputs.prior_drive) != (drive is not None) or (
+            drive is not None and prior is None
+        ):
             raise ValueError(
                 "the core reads the prior's drive with a model prior, inputs.prior_drive (its "
                 "width) and prior_drive (the callable, e.g. system.compensated_drive) together; "
-                f"got prior={'set' if prior else None}, inputs.prior_drive="
-                f"{self.inputs.prior_drive}, prior_drive={'set' if drive else None}."
+                f"got prior={'set' if prior is not None else None}, inputs.prior_drive="
+                f"{self.inputs.prior_drive}, prior_drive={'set' if drive is not None else None}."
             )
         return prior, drive
 
