@@ -8,6 +8,7 @@ errors. The commands call these; so can a user's own script.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Callable
 from typing import Any
 
@@ -20,6 +21,7 @@ from .cores import CORES, GRUCore, RecurrentCore
 from .inputs import ObserverInputs
 from .observer import ResidualObserver, core_output_size
 from .relax import relax
+from .robust import RobustWeights
 from .system import System
 
 __all__ = [
@@ -146,6 +148,7 @@ def build_observer(
             f"its factors: {list(group.factor_names)}."
         )
     update = {name: rules.get(name, model.default_update) for name in group.factor_names}
+    robust_drive, robust_innovation = _robust_weights(model, prior, system, inputs)
     observer = ResidualObserver(
         group,
         measurement_dim,
@@ -156,13 +159,18 @@ def build_observer(
         state_dtype=torch_dtype(model.state_dtype, "model.state_dtype"),
         output_scale=float(getattr(model, "output_scale", 1.0)),
         prior=prior,
-        prior_drive=system.compensated_drive if inputs.prior_drive else None,
+        prior_drive=(
+            system.compensated_drive if inputs.prior_drive or robust_drive is not None else None
+        ),
         gain=gain,
         offset=offset,
         centering=centering,
         centering_ramp=ramp,
         centering_factors=dict(getattr(model, "centering_factors", None) or {}),
         step_decay=dict(getattr(model, "step_decay", None) or {}),
+        prior_step=system.step if robust_drive is not None else None,
+        robust_drive=robust_drive,
+        robust_innovation=robust_innovation,
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 
@@ -251,6 +259,53 @@ def _prior_drive(model: ModelConfig | Any, prior) -> bool:
             "or model.prior_drive=false."
         )
     return on
+
+
+def _robust_weights(
+    model: ModelConfig | Any, prior, system: System | None, inputs: ObserverInputs
+) -> tuple[RobustWeights | None, RobustWeights | None]:
+    """The learned robust weights of ``model.robust_drive`` and ``model.robust_innovation``
+    (their widths; 0: none) with ``model.robust_span``, checked before any work."""
+    widths = {}
+    for key in ("robust_drive", "robust_innovation"):
+        width = getattr(model, key, 0)
+        if isinstance(width, bool) or not isinstance(width, int) or width < 0:
+            raise ValueError(
+                f"model.{key} must be an integer >= 0 (the steps of each learned weight "
+                f"function; 0: none), got {width!r}."
+            )
+        widths[key] = width
+    span = getattr(model, "robust_span", 4.0)
+    if isinstance(span, bool) or not isinstance(span, (int, float)) or not 0 < span < math.inf:
+        raise ValueError(f"model.robust_span must be a number > 0, got {span!r}.")
+    drive = innovation = None
+    if widths["robust_drive"]:
+        if prior is None:
+            raise ValueError(
+                "model.robust_drive weighs the drive the model prior steps with, but there is no "
+                "model prior; set model.prior=system (model=small_relative_prior) or "
+                "model.robust_drive=0."
+            )
+        if type(system).predict is not System.predict:
+            raise ValueError(
+                f"model.robust_drive steps the weighted drive with {type(system).__name__}.step, "
+                f"but {type(system).__name__} overrides predict, so its prior may not be "
+                "step(x, compensated_drive(x, y, u)). Write the prediction's drive in "
+                "compensated_drive and leave predict to the base class, or set "
+                "model.robust_drive=0."
+            )
+        drive = RobustWeights(system.drive_dim, widths["robust_drive"], float(span))
+    if widths["robust_innovation"]:
+        if not inputs.innovation:
+            raise ValueError(
+                "model.robust_innovation weighs the innovation, but model.innovation is empty; "
+                "name the measured factors there (e.g. {R: [0, 9], p: [9, 12]}) or set "
+                "model.robust_innovation=0."
+            )
+        innovation = RobustWeights(
+            len(inputs.innovation), widths["robust_innovation"], float(span)
+        )
+    return drive, innovation
 
 
 def build_estimator_factory(system: System, method: MethodConfig | Any) -> Callable[..., Any]:

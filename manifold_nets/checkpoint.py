@@ -41,6 +41,8 @@ FORMAT = "manifold_nets.checkpoint/1"
 #: The signature's keys of the centred update and the step decay, which add no weight
 #: (``train.init_from``).
 _NO_WEIGHT = ("centering", "centering_ramp", "centering_factors", "step_decay")
+#: Learned robust weights, which ``train.init_from`` adds to an observer without them.
+_ROBUST = ("robust_drive", "robust_innovation")
 
 
 class CheckpointError(ValueError):
@@ -218,7 +220,9 @@ def load_weights(
     an observer with another ``centering``, ``centering_ramp``, ``centering_factors`` or
     ``step_decay`` (the centred update and the step decay; the same weights), and the checkpoint of an observer without clock inputs into one with them
     (``ResidualObserver.state_with_inputs``: their weights zero), likewise without the framed
-    innovation (``model.innovation_frame``) or the prior's drive (``model.prior_drive``).
+    innovation (``model.innovation_frame``) or the prior's drive (``model.prior_drive``), and
+    the checkpoint of an observer without learned robust weights into one with them
+    (``ResidualObserver.state_with_robust``: the identity).
 
     Returns the file and the checkpoint's contents.
     """
@@ -233,6 +237,10 @@ def load_weights(
     appended = inputs.appended() if hasattr(inputs, "appended") else []
     if widen_gain and any(not found.get(key) for key, _, _ in appended):
         state, found = model.state_with_inputs(ckpt["model"], found, where=str(path))
+        ckpt = {**ckpt, "model": state}
+    own_sig = model.signature() if widen_gain else {}
+    if widen_gain and any(found.get(k) != own_sig.get(k) for k in _ROBUST):
+        state, found = model.state_with_robust(ckpt["model"], found, where=str(path))
         ckpt = {**ckpt, "model": state}
     if widen_gain and getattr(model, "gain", False) and not found.get("gain"):
         ckpt = {**ckpt, "model": model.state_with_gain(ckpt["model"], found, where=str(path))}

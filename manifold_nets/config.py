@@ -141,6 +141,20 @@ class ModelConfig:
     #: ``1 / k``, as a Kalman gain on a constant does; for factors the system keeps constant,
     #: e.g. ``{b_omega: 50, b_v: 100}``: the rigid body's biases. It adds no weight. Empty: none.
     step_decay: dict[str, int] = field(default_factory=dict)
+    #: Learned robust weights on the drive the model prior steps with (needs ``prior: system``
+    #: and a system that leaves ``predict`` to the base class): each component becomes
+    #: ``w_i(|d_i|) d_i``, ``w_i`` an M-estimator weight function of this many smooth steps,
+    #: learned, the identity when new (``manifold_nets.robust``); a reading the motion cannot
+    #: produce is pulled in before it moves the prediction. ``train.init_from`` adds it to an
+    #: observer without it. 0: none.
+    robust_drive: int = 0
+    #: Learned robust weights on the innovation: each innovation factor's ``nu_f`` becomes
+    #: ``w_f(||nu_f||) nu_f``, and the core reads the measurement that implies (a learned gate on
+    #: implausible measurements; needs ``innovation``). ``train.init_from`` adds it. 0: none.
+    robust_innovation: int = 0
+    #: Where the learned weight functions' steps start: evenly over ``[0, robust_span]``, in the
+    #: units of the drive and the innovation norms.
+    robust_span: float = 4.0
     #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
     output_scale: float = 1.0
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
@@ -178,6 +192,10 @@ class TrainSettings:
     epochs: int = 10
     batch_size: int = 256
     lr: float = 3.0e-4
+    #: Other learning rates for some parameters, ``{name prefix: lr}``: those whose name
+    #: (``model.named_parameters()``) starts with the prefix, e.g. ``{robust: 1.0e-2}`` for the
+    #: learned robust weights; scaled by the same schedule. Empty: ``lr`` for all.
+    param_lr: dict[str, float] = field(default_factory=dict)
     weight_decay: float = 0.1
     #: Learning-rate schedule over the epochs: ``constant`` (the paper names none) or
     #: ``cosine`` (a half cosine from ``lr`` in the first epoch down towards ``lr_min``, which

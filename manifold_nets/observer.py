@@ -29,6 +29,15 @@ the model's prediction, not the prediction. With ``prior_drive`` (a system's
 core also reads the drive that prediction integrated, so a reading the motion cannot produce (an
 outlier) is a plain input.
 
+*Learned robust weights* (:class:`~manifold_nets.robust.RobustWeights`, M-estimator weight
+functions learned per channel, the identity when new) pull implausible values in before they
+move anything. ``robust_drive``: the prior steps with the drive ``d_i <- w_i(|d_i|) d_i``,
+component by component (``prior_step(x, d)``, a system's ``step``, with ``prior_drive`` the
+drive; the prior must be ``prior_step(x, prior_drive(x, y, u))``, as the default
+:meth:`~manifold_nets.system.System.predict` is). ``robust_innovation``: each innovation factor's
+innovation ``nu_f <- w_f(||nu_f||) nu_f``, and the measurement the core reads with it,
+``m_f <- xhat_f^- exp(nu_f)``. The core reads the drive as it was given (``inputs.prior_drive``).
+
 A *gain head* (``gain=True``, needs innovation inputs) makes the core's output a Kalman-type
 update: the core outputs an offset ``a_k`` and a gain matrix ``K_k`` (``tangent_dim`` x the
 innovation's width) and ``v_k = a_k + K_k nu_k`` with ``nu_k`` the innovation it reads
@@ -93,6 +102,7 @@ from groups import Euclidean, LieGroup
 
 from .cores import GRUCore, Hidden, RecurrentCore
 from .inputs import ObserverInputs
+from .robust import RobustWeights, safe_norm
 
 __all__ = ["UPDATE_RULES", "ObserverState", "ResidualObserver", "core_output_size"]
 
@@ -247,6 +257,16 @@ class ResidualObserver(nn.Module):
         step_decay: ``{factor name: K_f}``, each an integer >= 1: those factors' tangent
             components of ``v_k`` are scaled by ``min(1, K_f / k)`` at the step from ``x_k``
             (default none). It adds no weight.
+        prior_step: with ``robust_drive``, the step the prior takes with a drive,
+            ``prior_step(x, d (B, drive width)) -> x^-`` (a system's ``step``), so that
+            ``prior(x, y, u) == prior_step(x, prior_drive(x, y, u))``.
+        robust_drive: a :class:`~manifold_nets.robust.RobustWeights` of one channel per drive
+            component: the prior steps with ``w_i(|d_i|) d_i`` (needs ``prior``,
+            ``prior_step`` and ``prior_drive``; default ``None``, none).
+        robust_innovation: a :class:`~manifold_nets.robust.RobustWeights` of one channel per
+            innovation factor (``inputs.innovation``, in its order): the core reads
+            ``w_f(||nu_f||) nu_f`` and the measurement that innovation implies (default
+            ``None``, none).
     """
 
     def __init__(
@@ -271,6 +291,9 @@ class ResidualObserver(nn.Module):
         centering_ramp: int = 0,
         centering_factors: Mapping[str, float] | None = None,
         step_decay: Mapping[str, int] | None = None,
+        prior_step: Callable[..., torch.Tensor] | None = None,
+        robust_drive: RobustWeights | None = None,
+        robust_innovation: RobustWeights | None = None,
     ):
         super().__init__()
         if not isinstance(group, LieGroup):
@@ -302,6 +325,10 @@ class ResidualObserver(nn.Module):
         self.gain, self.offset, self.centering, self.centering_ramp = form
         self.centering_factors = self._check_centering_factors(group, centering_factors)
         self.step_decay = self._check_step_decay(group, step_decay)
+        self.prior_step = prior_step
+        self.robust_drive, self.robust_innovation = self._check_robust(
+            robust_drive, robust_innovation
+        )
         self._innov_dim = self.inputs.innovation_dim(group)
         self.rules = _parse_rules(group, update)
         self._blocks = _blocks(group, self.rules)
@@ -333,9 +360,7 @@ class ResidualObserver(nn.Module):
                 "prior and inputs.propagate are two kinematic priors; use one (prior: the whole "
                 "nominal model, e.g. system.predict; propagate: a factor moved by a measured rate)."
             )
-        if bool(self.inputs.prior_drive) != (drive is not None) or (
-            drive is not None and prior is None
-        ):
+        if (self.inputs.prior_drive and drive is None) or (drive is not None and prior is None):
             raise ValueError(
                 "the core reads the prior's drive with a model prior, inputs.prior_drive (its "
                 "width) and prior_drive (the callable, e.g. system.compensated_drive) together; "
@@ -343,6 +368,39 @@ class ResidualObserver(nn.Module):
                 f"{self.inputs.prior_drive}, prior_drive={'set' if drive is not None else None}."
             )
         return prior, drive
+
+    def _check_robust(self, drive_map, innovation_map) -> tuple:
+        """``robust_drive`` and ``robust_innovation``, checked against the prior and the inputs."""
+        for name, m in (("robust_drive", drive_map), ("robust_innovation", innovation_map)):
+            if m is not None and not isinstance(m, RobustWeights):
+                raise TypeError(
+                    f"{name} must be a manifold_nets.robust.RobustWeights, got {type(m).__name__}."
+                )
+        if drive_map is not None and (
+            self.prior is None or self.prior_drive is None or not callable(self.prior_step)
+        ):
+            raise ValueError(
+                "robust_drive weighs the drive the model prior steps with, so it needs the prior "
+                "(prior=system.predict), its drive (prior_drive=system.compensated_drive) and "
+                "its step (prior_step=system.step); got "
+                f"prior={'set' if self.prior is not None else None}, prior_drive="
+                f"{'set' if self.prior_drive is not None else None}, prior_step="
+                f"{'set' if self.prior_step is not None else None}."
+            )
+        if drive_map is None and self.prior_step is not None:
+            raise ValueError(
+                "prior_step is the step robust_drive's weighted drive is taken with; without "
+                "robust_drive leave it out (the prior steps itself)."
+            )
+        n = len(self.inputs.innovation)
+        if innovation_map is not None and innovation_map.channels != n:
+            raise ValueError(
+                f"robust_innovation has {innovation_map.channels} channels, but the observer reads "
+                f"{n} innovation factors ({list(self.inputs.innovation)}): one weight function "
+                "per factor"
+                + ("; give inputs.innovation or drop robust_innovation." if not n else ".")
+            )
+        return drive_map, innovation_map
 
     def _check_gain(self, gain: bool, offset: bool) -> tuple[bool, bool]:
         if not isinstance(gain, bool):
@@ -602,7 +660,43 @@ class ResidualObserver(nn.Module):
             **({"centering_ramp": self.centering_ramp} if self.centering_ramp else {}),
             **({"centering_factors": self.centering_factors} if self.centering_factors else {}),
             **({"step_decay": self.step_decay} if self.step_decay else {}),
+            **{
+                name: m.signature()
+                for name, m in (
+                    ("robust_drive", self.robust_drive),
+                    ("robust_innovation", self.robust_innovation),
+                )
+                if m is not None
+            },
         }
+
+    def state_with_robust(
+        self, state: dict, signature: dict, where: str = "checkpoint"
+    ) -> tuple[dict, dict]:
+        """A ``state_dict`` and signature for this observer from one of the same observer without
+        some of its learned robust weights (``robust_drive``, ``robust_innovation``): each
+        missing map starts new, the identity, so this observer starts out computing what that one
+        does (``train.init_from``).
+
+        Raises :class:`~manifold_nets.checkpoint.CheckpointError` when the checkpoint has a map
+        this observer lacks, or one of another shape."""
+        from .checkpoint import CheckpointError
+
+        out, sig = dict(state), dict(signature)
+        for name in ("robust_drive", "robust_innovation"):
+            mine, theirs = getattr(self, name), signature.get(name)
+            if theirs is None and mine is not None:
+                like = mine.amplitude
+                new = RobustWeights(**mine.signature()).to(like.dtype).to(like.device)
+                out.update({f"{name}.{k}": v for k, v in new.state_dict().items()})
+                sig[name] = mine.signature()
+            elif theirs is not None and (mine is None or theirs != mine.signature()):
+                raise CheckpointError(
+                    f"{where}: the checkpoint's {name} {theirs} does not fit this observer's "
+                    f"({mine.signature() if mine is not None else None}); model.{name} must "
+                    "match, or be off in the checkpoint (then it starts as the identity)."
+                )
+        return out, sig
 
     def state_with_gain(self, state: dict, signature: dict, where: str = "checkpoint") -> dict:
         """A ``state_dict`` for this gain-head observer from one of the same observer without the
@@ -752,12 +846,7 @@ class ResidualObserver(nn.Module):
         net = context.dtype
         drive = []
         if self.prior is not None:
-            y = readings[:, : self.measurement_dim]
-            u = readings[:, self.measurement_dim :] if self.input_dim else None
-            x = x.unflatten(-1, self.group.element_shape)
-            if self.prior_drive is not None:  # what the prior integrates, from x_k
-                drive = [self.prior_drive(x, y, u).to(net)]
-            x = self.prior(x, y, u).flatten(1)
+            x, drive = self._prior(x, readings, net)
         extra = None
         if self._num_extra:
             context, extra = context[:, : -self._num_extra], context[:, -self._num_extra :]
@@ -766,9 +855,12 @@ class ResidualObserver(nn.Module):
         if self._keep_embedding is not None:
             e = e.index_select(-1, self._keep_embedding)
         innovation = [
-            f.rminus(m, x[:, xs].unflatten(-1, f.element_shape)).to(net)
+            f.rminus(m, x[:, xs].unflatten(-1, f.element_shape))
             for (f, xs, _), m in zip(self._innov, measured)
         ]
+        if self.robust_innovation is not None:
+            innovation, context = self._robust_innovation(x, innovation, context)
+        innovation = [nu.to(net) for nu in innovation]
         e = e.to(net)
         rotated = []
         for xs, cols in self._rotated:  # world-frame vectors R v of body-frame v
@@ -812,6 +904,39 @@ class ResidualObserver(nn.Module):
         if self.output_scale != 1.0:
             v = v * self.output_scale
         return self._update(x, v.to(x.dtype)), hidden
+
+    def _prior(
+        self, x: torch.Tensor, readings: torch.Tensor, net: torch.dtype
+    ) -> tuple[torch.Tensor, list[torch.Tensor]]:
+        """The model prior's ``x^-`` ``(B, numel)`` from the flat ``x_k``, with ``robust_drive``
+        the step with the weighted drive, and the drive the core reads (``[]`` or one ``(B,
+        width)`` in the network dtype ``net``)."""
+        y = readings[:, : self.measurement_dim]
+        u = readings[:, self.measurement_dim :] if self.input_dim else None
+        x = x.unflatten(-1, self.group.element_shape)
+        d = None if self.prior_drive is None else self.prior_drive(x, y, u)  # from x_k
+        drive = [d.to(net)] if self.inputs.prior_drive else []  # the drive as given
+        if self.robust_drive is None:
+            return self.prior(x, y, u).flatten(1), drive
+        w = self.robust_drive(d.abs().to(net)).to(d.dtype)  # d_i <- w_i(|d_i|) d_i
+        return self.prior_step(x, w * d).flatten(1), drive
+
+    def _robust_innovation(
+        self, x: torch.Tensor, innovation: list[torch.Tensor], context: torch.Tensor
+    ) -> tuple[list[torch.Tensor], torch.Tensor]:
+        """``nu_f <- w_f(||nu_f||) nu_f`` for each innovation factor (state dtype), and in the
+        context each measured factor's columns set to the measurement that implies,
+        ``xhat_f^- exp(nu_f)``."""
+        norms = torch.stack([safe_norm(nu) for nu in innovation], dim=-1)
+        w = self.robust_innovation(norms.to(context.dtype)).to(norms.dtype)
+        innovation = [nu * w[:, i : i + 1] for i, nu in enumerate(innovation)]
+        if any(cols is not None for cols in self._measured_in_context):
+            context = context.clone()
+            for (f, xs, _), nu, cols in zip(self._innov, innovation, self._measured_in_context):
+                if cols is not None:
+                    m = f.rplus(x[:, xs].unflatten(-1, f.element_shape), nu)
+                    context[:, cols] = f.embed(m).reshape(x.shape[0], -1).to(context.dtype)
+        return innovation, context
 
     def _clocks(self, k0: int, count: int) -> torch.Tensor | list[None]:
         """The clock features of the ``count`` steps from ``x_{k0}`` on, ``(count,

@@ -9,6 +9,9 @@ validation loss is computed; the model with the smallest one is kept (``best.pt`
 The learning rate is constant (the paper names no schedule) or, with ``schedule="cosine"``,
 follows :func:`learning_rate`: a half cosine, one value per epoch, from ``lr`` in the first epoch
 down towards ``lr_min`` (a function of the epoch alone, so a resumed run gets the same rates).
+``param_lr`` gives some parameters their own rate (:func:`param_groups`), scaled by the same
+schedule: new parts of a fine-tuned model (say learned robust weights) move in a few hundred
+steps what the rest, at a small rate, would not.
 
 Files written in ``out_dir``:
 
@@ -174,6 +177,15 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
             "model), e.g. 1.0."
         )
     check_schedule(settings.schedule, float(settings.lr), float(settings.lr_min))
+    for prefix, rate in dict(settings.param_lr or {}).items():
+        if not isinstance(prefix, str) or not prefix:
+            raise ValueError(f"param_lr: each key must be a parameter-name prefix, got {prefix!r}.")
+        if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not (
+            math.isfinite(rate) and rate > 0
+        ):
+            raise ValueError(
+                f"param_lr[{prefix!r}] must be a positive learning rate, got {rate!r}."
+            )
     if settings.loss not in LOSSES:
         raise ValueError(
             f"loss={settings.loss!r} is not a training loss; choose one of {', '.join(LOSSES)}."
@@ -210,6 +222,41 @@ def learning_rate(
         return float(lr)
     frac = (epoch - 1) / epochs
     return float(lr_min + (lr - lr_min) * 0.5 * (1.0 + math.cos(math.pi * frac)))
+
+
+def param_groups(model: torch.nn.Module, lr: float, param_lr: dict | None) -> list[dict]:
+    """The optimizer's parameter groups: the parameters whose name
+    (``model.named_parameters()``) starts with a key of ``param_lr`` train at its learning rate,
+    the rest at ``lr``; first the rest, then one group per key. Each group's ``lr_scale`` is its
+    rate over ``lr``, so a schedule scales every group alike.
+
+    Raises ``ValueError`` for a key that names no parameter, or a parameter two keys name."""
+    named = list(model.named_parameters())
+    param_lr = dict(param_lr or {})
+    owner: dict[str, str] = {}
+    for prefix in param_lr:
+        hits = [name for name, _ in named if name.startswith(prefix)]
+        if not hits:
+            tops = sorted({name.split(".")[0] for name, _ in named})
+            raise ValueError(
+                f"param_lr[{prefix!r}] names no parameter of the model; a key is the start of "
+                f"parameter names, e.g. one of the model's parts {tops}."
+            )
+        for name in hits:
+            if name in owner:
+                raise ValueError(
+                    f"param_lr: the parameter {name!r} starts with both {owner[name]!r} and "
+                    f"{prefix!r}; give each parameter one learning rate."
+                )
+            owner[name] = prefix
+    groups = [{"params": [p for name, p in named if name not in owner], "lr_scale": 1.0}]
+    for prefix, rate in param_lr.items():
+        groups.append({
+            "params": [p for name, p in named if owner.get(name) == prefix],
+            "lr": float(rate),
+            "lr_scale": float(rate) / float(lr),
+        })
+    return groups
 
 
 class TrainingDiverged(FloatingPointError):
@@ -412,7 +459,8 @@ class _Trainer:
         self.signature = model.signature()
         self.gen = torch.Generator().manual_seed(int(seed))
         self.opt = torch.optim.AdamW(
-            model.parameters(), lr=settings.lr, weight_decay=settings.weight_decay
+            param_groups(model, settings.lr, settings.param_lr),
+            lr=settings.lr, weight_decay=settings.weight_decay,
         )
         self.history: list[dict] = []
         self.best = {"epoch": 0, "val_loss": math.inf}
@@ -520,8 +568,8 @@ class _Trainer:
         rate = learning_rate(
             epoch, epochs=s.epochs, lr=s.lr, schedule=s.schedule, lr_min=s.lr_min
         )
-        for group in self.opt.param_groups:
-            group["lr"] = rate
+        for group in self.opt.param_groups:  # each group's own lr on the same schedule
+            group["lr"] = rate * group.get("lr_scale", 1.0)
         batches = list(torch.randperm(len(train), generator=self.gen).split(s.batch_size))
         if s.max_batches is not None:
             batches = batches[: s.max_batches]

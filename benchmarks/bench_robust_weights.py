@@ -1,0 +1,177 @@
+"""Robust weights on a trained observer: learned ones taken away, and Huber's set by hand.
+
+The observer (a run folder or a shipped one) rolls over ``--sequences`` new sequences of 1000
+steps of its own system, or of another run's (``--system-of``: e.g. a nominal observer on the
+outliers' system), seed 1 (for ``mismatch_outliers`` the sequences of
+``bench_outlier_filters.py``), at each sigma, next to the nominal EKF on the same sequences, in
+these forms (docs/comparison.md, "Learned robust weights"):
+
+* as trained;
+* if it has learned robust weights (``model.robust_drive``, ``model.robust_innovation``): each
+  map, then both, set back to the identity (what they add);
+* Huber's weights set by hand, ``w(r) = min(1, c / r)``, in place of the maps (the observer
+  widened with them if it has none): on the drive the prior steps with (``--drive-bound``: a
+  bias-corrected reading clipped to ``|d_i| <= c``, the paper's motion keeps ``|Omega|, |v| <=
+  1``), on the innovation (``--innovation-bound``: its norm clipped), and both. Told the box and
+  a threshold, these are not learned figures: they say what the two weights can do with no
+  training.
+
+It also draws each learned weight function over ``[0, --span]`` (``--plot``)::
+
+    python benchmarks/bench_robust_weights.py RUN --sigmas 0.1 0.3 0.5 [--sequences 200] \
+        [--system-of RUN2] [--drive-bound 1.0] [--innovation-bound 0.5] [--out FILE] [--plot FILE]
+    # about 30 s per sigma on one core
+"""
+
+from __future__ import annotations
+
+import argparse
+import copy
+from pathlib import Path
+
+import torch
+
+import manifold_nets_examples.rigid_body  # noqa: F401  (registers the systems)
+from manifold_nets import build_observer, load_observer
+from manifold_nets.checkpoint import load_weights
+from manifold_nets.evaluation import evaluate
+from manifold_nets.robust import RobustWeights
+from manifold_nets_examples.rigid_body.filters import RigidBodyEKF
+
+MAPS = ("robust_drive", "robust_innovation")
+
+
+class HuberWeights(RobustWeights):
+    """Huber's weight ``min(1, c / r)`` on every channel, nothing learned."""
+
+    def __init__(self, channels: int, bound: float):
+        super().__init__(channels, width=1)
+        self.bound = float(bound)
+
+    def forward(self, r: torch.Tensor) -> torch.Tensor:
+        return (self.bound / r.clamp(min=1e-30)).clamp(max=1.0)
+
+
+def with_maps(run: str):
+    """The observer of ``run`` with both maps (its own, or new ones: the identity) and its
+    system."""
+    obs, system, cfg = load_observer(run)
+    if all(getattr(obs, name) is not None for name in MAPS):
+        return obs, system
+    model = copy.deepcopy(cfg.model)
+    for name in MAPS:
+        model[name] = model[name] or 1
+    wide = build_observer(system.group, system.measurement_dim, system.input_dim, model,
+                          system=system, dt=getattr(system, "dt", None))
+    load_weights(wide, Path(run), widen_gain=True)
+    return wide.eval(), system
+
+
+def errors(obs, system, data) -> dict[str, float]:
+    row = evaluate(obs, data, system).row
+    return {k[: -len(" est")]: v for k, v in row.items() if k.endswith(" est")}
+
+
+def forms(obs, learned: list[str], drive: float, innovation: float) -> dict:
+    """``{label: observer}``: as trained, each learned map taken away, Huber's by hand."""
+    out = {"as trained": obs}
+    for names in [[n] for n in learned] + ([learned] if len(learned) > 1 else []):
+        o = copy.deepcopy(obs)
+        for n in names:
+            setattr(o, n, RobustWeights(**getattr(o, n).signature()).to(o.net_dtype))
+        out[" and ".join(names) + " set to the identity"] = o
+    huber = {
+        "robust_drive": lambda o: HuberWeights(o.robust_drive.channels, drive),
+        "robust_innovation": lambda o: HuberWeights(o.robust_innovation.channels, innovation),
+    }
+    for names in (["robust_drive"], ["robust_innovation"], list(MAPS)):
+        o = copy.deepcopy(obs)
+        for n in names:
+            setattr(o, n, huber[n](o).to(o.net_dtype))
+        label = {"robust_drive": f"drive clipped at {drive:g}",
+                 "robust_innovation": f"innovation norms clipped at {innovation:g}"}
+        out["Huber by hand: " + ", ".join(label[n] for n in names)] = o
+    return out
+
+
+def plot(obs, learned: list[str], span: float, path: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = {"robust_drive": ["Omega_x", "Omega_y", "Omega_z", "v_x", "v_y", "v_z"],
+             "robust_innovation": list(obs.inputs.innovation)}
+    fig, axes = plt.subplots(1, len(learned), figsize=(5.5 * len(learned), 4), squeeze=False)
+    r = torch.linspace(0, span, 400)
+    for ax, name in zip(axes[0], learned):
+        m = getattr(obs, name)
+        with torch.no_grad():
+            w = m(r.unsqueeze(-1).expand(-1, m.channels).to(obs.net_dtype)).float()
+        for i in range(m.channels):
+            label = names[name][i] if i < len(names[name]) else str(i)
+            ax.plot(r, w[:, i], label=label)
+            ax.plot(r, w[:, i] * r, ls=":", color=ax.lines[-1].get_color())
+        ax.axhline(1.0, color="grey", lw=0.5)
+        ax.set_title(f"{name}: w(r) (solid), w(r) r (dotted)")
+        ax.set_xlabel("r = |d_i|" if name == "robust_drive" else "r = ||nu_f||")
+        ax.legend(fontsize=8)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("run")
+    ap.add_argument("--sigmas", type=float, nargs="+", default=[0.1, 0.3, 0.5])
+    ap.add_argument("--sequences", type=int, default=200)
+    ap.add_argument("--system-of", default=None, help="simulate with this run's system instead")
+    ap.add_argument("--drive-bound", type=float, default=1.0)
+    ap.add_argument("--innovation-bound", type=float, default=0.5)
+    ap.add_argument("--span", type=float, default=4.0)
+    ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "robust_weights.md"))
+    ap.add_argument("--plot", default=None, help="a PNG of the learned weight functions")
+    args = ap.parse_args()
+    torch.set_num_threads(1)
+    learned = [n for n in MAPS if getattr(load_observer(args.run).observer, n) is not None]
+    obs, system = with_maps(args.run)
+    if args.system_of:
+        system = load_observer(args.system_of).system
+    cmd = " ".join(
+        ["python benchmarks/bench_robust_weights.py", args.run, "--sigmas",
+         *map(str, args.sigmas), "--sequences", str(args.sequences),
+         *(["--system-of", args.system_of] if args.system_of else []), "--drive-bound",
+         f"{args.drive_bound:g}", "--innovation-bound", f"{args.innovation_bound:g}"]
+    )
+    lines = [
+        "# Robust weights on a trained observer: learned ones taken away, Huber's by hand", "",
+        f"`{cmd}` ({args.sequences} x 1000 per sigma of `{system!r}`, seed 1, "
+        f"steps >= 10; torch {torch.__version__}, one thread). Learned maps: "
+        f"{', '.join(learned) or 'none'}.", "",
+        "| sigma | estimator | R | p | b_omega | b_v | R vs nominal EKF | p vs nominal EKF |",
+        "|---:|---|---:|---:|---:|---:|---:|---:|",
+    ]
+    for sigma in args.sigmas:
+        data = system.simulate(args.sequences, 1000, sigma, torch.Generator().manual_seed(1))
+        base = errors(RigidBodyEKF(system, sigma), system, data)
+        rows = {"EKF, nominal (ekf)": base}
+        for label, o in forms(obs, learned, args.drive_bound, args.innovation_bound).items():
+            with torch.no_grad():
+                rows[label] = errors(o, system, data)
+        for label, e in rows.items():
+            lines.append(
+                f"| {sigma:g} | {label} | {e['R']:.4f} | {e['p']:.4f} | {e['b_omega']:.4f} | "
+                f"{e['b_v']:.4f} | {100 * (e['R'] / base['R'] - 1):+.1f} % | "
+                f"{100 * (e['p'] / base['p'] - 1):+.1f} % |"
+            )
+        print("\n".join(lines[-len(rows):]), flush=True)
+    Path(args.out).write_text("\n".join(lines) + "\n")
+    print(f"wrote {args.out}")
+    if args.plot and learned:
+        plot(obs, learned, args.span, Path(args.plot))
+        print(f"wrote {args.plot}")
+
+
+if __name__ == "__main__":
+    main()
