@@ -16,10 +16,15 @@ these forms (docs/comparison.md, "Learned robust weights"):
   a threshold, these are not learned figures: they say what the two weights can do with no
   training.
 
-It also draws each learned weight function over ``[0, --span]`` (``--plot``)::
+It also draws each learned weight function over ``[0, --span]`` (``--plot``), and with
+``--timing`` measures what the maps cost: the rollout of 200 sequences of 1000 steps
+(``torch.inference_mode``) and a training step (forward, backward, 32 sequences of 200 steps) with
+the maps and with them removed, interleaved over ``--reps`` repetitions on one thread; the ratio
+of medians::
 
     python benchmarks/bench_robust_weights.py RUN --sigmas 0.1 0.3 0.5 [--sequences 200] \
-        [--system-of RUN2] [--drive-bound 1.0] [--innovation-bound 0.5] [--out FILE] [--plot FILE]
+        [--system-of RUN2] [--drive-bound 1.0] [--innovation-bound 0.5] [--out FILE] [--plot FILE] \
+        [--timing] [--reps 5]
     # about 30 s per sigma on one core
 """
 
@@ -121,6 +126,46 @@ def plot(obs, learned: list[str], span: float, path: Path) -> None:
     fig.savefig(path, dpi=110)
 
 
+def timing(obs, system, reps: int) -> list[str]:
+    """Markdown rows: median and minimum seconds of a rollout and of a training step, with the
+    maps and without them, and the ratio of medians."""
+    import statistics
+    import time
+
+    bare = copy.deepcopy(obs)
+    for name in MAPS:
+        setattr(bare, name, None)
+    bare.prior_step = None
+    g = torch.Generator().manual_seed(3)
+    long = system.simulate(200, 1000, 0.3, g)
+    short = system.simulate(32, 200, 0.3, g)
+
+    def rollout(o):
+        with torch.inference_mode():
+            o(long.measurements)
+
+    def train_step(o):
+        o.zero_grad()
+        est = o(short.measurements)
+        (est[:, 1:] - short.states[:, 1:]).pow(2).mean().backward()
+
+    rows = []
+    work = (("rollout, 200 x 1000 steps", rollout), ("training step, 32 x 200", train_step))
+    for label, fn in work:
+        times = {"with the maps": [], "without": []}
+        for _ in range(reps):  # interleaved, so load from elsewhere hits both alike
+            for key, o in (("with the maps", obs), ("without", bare)):
+                t0 = time.perf_counter()
+                fn(o)
+                times[key].append(time.perf_counter() - t0)
+        a, b = (statistics.median(times[k]) for k in ("with the maps", "without"))
+        rows.append(
+            f"| {label} | {a:.3f} ({min(times['with the maps']):.3f}) | "
+            f"{b:.3f} ({min(times['without']):.3f}) | {a / b:.3f} |"
+        )
+    return rows
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("run")
@@ -132,6 +177,8 @@ def main() -> None:
     ap.add_argument("--span", type=float, default=4.0)
     ap.add_argument("--out", default=str(Path(__file__).parent / "results" / "robust_weights.md"))
     ap.add_argument("--plot", default=None, help="a PNG of the learned weight functions")
+    ap.add_argument("--timing", action="store_true", help="also time the maps' cost")
+    ap.add_argument("--reps", type=int, default=5)
     args = ap.parse_args()
     torch.set_num_threads(1)
     learned = [n for n in MAPS if getattr(load_observer(args.run).observer, n) is not None]
@@ -142,7 +189,8 @@ def main() -> None:
         ["python benchmarks/bench_robust_weights.py", args.run, "--sigmas",
          *map(str, args.sigmas), "--sequences", str(args.sequences),
          *(["--system-of", args.system_of] if args.system_of else []), "--drive-bound",
-         f"{args.drive_bound:g}", "--innovation-bound", f"{args.innovation_bound:g}"]
+         f"{args.drive_bound:g}", "--innovation-bound", f"{args.innovation_bound:g}",
+         *(["--timing", "--reps", str(args.reps)] if args.timing else [])]
     )
     lines = [
         "# Robust weights on a trained observer: learned ones taken away, Huber's by hand", "",
@@ -166,6 +214,14 @@ def main() -> None:
                 f"{100 * (e['p'] / base['p'] - 1):+.1f} % |"
             )
         print("\n".join(lines[-len(rows):]), flush=True)
+    if args.timing:
+        lines += [
+            "", f"What the maps cost (`--timing`, {args.reps} interleaved repetitions, one "
+            "thread): median (minimum) seconds", "",
+            "| work | with the maps | without | ratio |", "|---|---:|---:|---:|",
+            *timing(obs, system, args.reps),
+        ]
+        print("\n".join(lines[-2:]), flush=True)
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
     if args.plot and learned:

@@ -98,11 +98,15 @@ def test_training_lowers_the_loss(tmp_path):
     assert validation_loss(fresh, val) == pytest.approx(res.best_val_loss, rel=1e-6)
 
 
-@pytest.mark.parametrize("schedule", ["constant", "cosine"])
-def test_resume_gives_the_uninterrupted_result(tmp_path, schedule):
+@pytest.mark.parametrize(
+    "schedule, param_lr", [("constant", {}), ("cosine", {}), ("cosine", {"core.head": 3e-2})]
+)
+def test_resume_gives_the_uninterrupted_result(tmp_path, schedule, param_lr):
     train, val = make_data(24, seed=0), make_data(8, seed=1)
-    # the noise's RNG state matters too, and the learning rate of a resumed epoch
-    noisy = {"transform": MeasurementNoise(EmbeddingSystem(), 0.0, 0.3), "schedule": schedule}
+    # the noise's RNG state matters too, and the learning rate of a resumed epoch (of each
+    # parameter group: train.param_lr)
+    noisy = {"transform": MeasurementNoise(EmbeddingSystem(), 0.0, 0.3), "schedule": schedule,
+             "param_lr": param_lr}
     straight = make_model()
     train_model(straight, train, val, tmp_path / "a", **noisy)
 
