@@ -25,6 +25,7 @@ NAMES = [
     "paper_cpu_prior_centred085_bias097_cosine16",
     "paper_cpu_prior_centred085_bias097_decay16_frame_factor_log",
     "paper_cpu_prior_centred085_low2_bv099_k70",
+    "paper_cpu_prior_robust16",
     "mismatch_bias_walk_prior_long1000",
     "mismatch_bias_walk",
     "mismatch_outliers",
@@ -37,6 +38,9 @@ NAMES = [
     "mismatch_outliers_long_bptt1000_log",
     "mismatch_outliers_long_bptt1000_log_skip10",
     "mismatch_outliers_long_bptt1000_log_cosine3",
+    "mismatch_outliers_prior_robust16",
+    "mismatch_sensor_prior_robust16",
+    "mismatch_correlated_prior_robust16",
 ]
 
 
