@@ -40,7 +40,7 @@ NAMES = [
     "mismatch_outliers_long_bptt1000_log_cosine3",
     "mismatch_outliers_prior_robust16",
     "mismatch_sensor_prior_robust16",
-    "mismatch_correlated_prior_robust16",
+    "mismatch_correlated_prior_robust16_plus8",
 ]
 
 
