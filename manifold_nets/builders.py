@@ -8,7 +8,6 @@ errors. The commands call these; so can a user's own script.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from typing import Any
 
@@ -21,7 +20,7 @@ from .cores import CORES, GRUCore, RecurrentCore
 from .inputs import ObserverInputs
 from .observer import ResidualObserver, core_output_size
 from .relax import relax
-from .robust import RobustWeights
+from .robust import RobustWeights, check_span
 from .system import System
 
 __all__ = [
@@ -275,9 +274,7 @@ def _robust_weights(
                 f"function; 0: none), got {width!r}."
             )
         widths[key] = width
-    span = getattr(model, "robust_span", 4.0)
-    if isinstance(span, bool) or not isinstance(span, (int, float)) or not 0 < span < math.inf:
-        raise ValueError(f"model.robust_span must be a number > 0, got {span!r}.")
+    span = check_span(getattr(model, "robust_span", 4.0), "model.robust_span")
     drive = innovation = None
     if widths["robust_drive"]:
         if prior is None:
@@ -294,7 +291,7 @@ def _robust_weights(
                 "compensated_drive and leave predict to the base class, or set "
                 "model.robust_drive=0."
             )
-        drive = RobustWeights(system.drive_dim, widths["robust_drive"], float(span))
+        drive = RobustWeights(system.drive_dim, widths["robust_drive"], span)
     if widths["robust_innovation"]:
         if not inputs.innovation:
             raise ValueError(
@@ -302,9 +299,7 @@ def _robust_weights(
                 "name the measured factors there (e.g. {R: [0, 9], p: [9, 12]}) or set "
                 "model.robust_innovation=0."
             )
-        innovation = RobustWeights(
-            len(inputs.innovation), widths["robust_innovation"], float(span)
-        )
+        innovation = RobustWeights(len(inputs.innovation), widths["robust_innovation"], span)
     return drive, innovation
 
 

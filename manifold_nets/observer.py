@@ -686,8 +686,7 @@ class ResidualObserver(nn.Module):
         for name in ("robust_drive", "robust_innovation"):
             mine, theirs = getattr(self, name), signature.get(name)
             if theirs is None and mine is not None:
-                like = mine.amplitude
-                new = RobustWeights(**mine.signature()).to(like.dtype).to(like.device)
+                new = RobustWeights(**mine.signature()).to(mine.amplitude)  # its dtype, device
                 out.update({f"{name}.{k}": v for k, v in new.state_dict().items()})
                 sig[name] = mine.signature()
             elif theirs is not None and (mine is None or theirs != mine.signature()):

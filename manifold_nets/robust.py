@@ -34,7 +34,14 @@ import math
 import torch
 from torch import nn
 
-__all__ = ["RobustWeights", "safe_norm"]
+__all__ = ["RobustWeights", "check_span", "safe_norm"]
+
+
+def check_span(span: object, label: str = "RobustWeights: span") -> float:
+    """``span`` as a float, or a ``ValueError`` naming ``label`` unless it is a finite number > 0."""
+    if isinstance(span, bool) or not isinstance(span, (int, float)) or not 0 < span < math.inf:
+        raise ValueError(f"{label} must be a number > 0, got {span!r}.")
+    return float(span)
 
 
 def safe_norm(v: torch.Tensor) -> torch.Tensor:
@@ -58,12 +65,7 @@ class RobustWeights(nn.Module):
         for name, val in (("channels", channels), ("width", width)):
             if isinstance(val, bool) or not isinstance(val, int) or val < 1:
                 raise ValueError(f"RobustWeights: {name} must be an integer >= 1, got {val!r}.")
-        if (
-            isinstance(span, bool) or not isinstance(span, (int, float))
-            or not 0 < span < math.inf
-        ):
-            raise ValueError(f"RobustWeights: span must be a number > 0, got {span!r}.")
-        self.channels, self.width, self.span = channels, width, float(span)
+        self.channels, self.width, self.span = channels, width, check_span(span)
         knots = torch.linspace(0.0, self.span, width).expand(channels, width).clone()
         spacing = self.span / max(width - 1, 1)
         self.amplitude = nn.Parameter(torch.zeros(channels, width))
