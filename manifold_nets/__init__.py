@@ -10,8 +10,8 @@ data                   :class:`TrajectoryDataset`, :func:`load_dataset`, :func:`
                        :func:`make_dataset`, :func:`load_or_generate`,
                        :func:`collate_trajectories` (for ``torch.utils.data.DataLoader``),
                        :class:`SimulatedStream` (fresh sequences every epoch, for :func:`fit`)
-observer               :class:`ResidualObserver`, :class:`ObserverInputs`, :class:`RecurrentCore`,
-                       :class:`GRUCore`
+observer               :class:`ResidualObserver` and its pieces (:mod:`manifold_nets.observer`),
+                       :class:`RecurrentCore`, :class:`GRUCore`
 training               :func:`fit`, :class:`TrainSettings`, :class:`MeasurementNoise`,
                        :func:`embedding_mse`
 evaluation             :func:`evaluate`, :func:`factor_errors`, :class:`ErrorStateEKF`
@@ -42,7 +42,6 @@ from .datasets import load_or_generate, make_dataset
 from .deploy import export_observer
 from .ekf import ErrorStateEKF
 from .evaluation import evaluate
-from .inputs import ObserverInputs
 from .loading import load_observer
 from .losses import embedding_mse, factor_errors
 from .observer import ResidualObserver
@@ -63,7 +62,6 @@ __all__ = [
     "load_or_generate",
     "SimulatedStream",
     "ResidualObserver",
-    "ObserverInputs",
     "RecurrentCore",
     "GRUCore",
     "fit",

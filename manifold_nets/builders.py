@@ -8,6 +8,8 @@ errors. The commands call these; so can a user's own script.
 
 from __future__ import annotations
 
+import inspect
+import warnings
 from collections.abc import Callable
 from typing import Any
 
@@ -15,18 +17,22 @@ import torch
 
 from groups import LieGroup
 
+from omegaconf import DictConfig, ListConfig, OmegaConf
+
 from .config import DTYPES, MethodConfig, ModelConfig
 from .cores import CORES, GRUCore, RecurrentCore
-from .inputs import ObserverInputs
-from .observer import ResidualObserver, core_output_size
+from .observer import GroupUpdate, ResidualObserver
+from .observer.legacy import blocks_from_flat, flat_keys_set
+from .observer.piece import piece_class
 from .relax import relax
-from .robust import RobustWeights, check_span
 from .system import System
 
 __all__ = [
     "LEARNED_METHODS",
     "build_system",
     "build_observer",
+    "build_piece",
+    "model_blocks",
     "build_estimator_factory",
     "resolve_device",
     "torch_dtype",
@@ -109,36 +115,26 @@ def build_observer(
     system's ``group`` and sizes; ``model.relax`` takes factors off the group
     (:func:`~manifold_nets.relax.relax`).
 
-    ``model.core`` is ``gru`` or a :class:`~manifold_nets.cores.RecurrentCore` subclass by dotted
-    path; with ``import_core=False`` (a config read from a file,
-    :func:`manifold_nets.load_observer`) only one already imported
-    (:data:`manifold_nets.cores.CORES`), never a module to import. ``dt`` (the system's step)
-    scales the kinematic prior ``model.propagate``; ``system`` gives the model prior
-    ``model.prior=system`` (its :meth:`~manifold_nets.system.System.predict`)."""
-    prior = _model_prior(model, system)
+    Each block names a registered piece (:data:`manifold_nets.observer.PIECES`), never a module
+    to import; a block's keys are the piece's arguments, checked by the piece, and its errors name
+    the block. ``system`` is what a system prior predicts with, ``dt`` the kinematic prior's step
+    (default ``system.dt``). ``model.core`` is ``gru`` or a
+    :class:`~manifold_nets.cores.RecurrentCore` subclass by dotted path; with
+    ``import_core=False`` (a config read from a file) only one already imported."""
+    blocks = model_blocks(model)
     group = relax(group, list(model.relax))
-    inputs = ObserverInputs(
-        dict(model.innovation),
-        tuple(model.relative_only),
-        rotated={
-            name: [tuple(span) for span in spans]
-            for name, spans in dict(getattr(model, "rotated", None) or {}).items()
-        },
-        propagate=dict(getattr(model, "propagate", None) or {}),
-        dt=dt,
-        clock=tuple(getattr(model, "clock", None) or ()),
-        innovation_frame=dict(getattr(model, "innovation_frame", None) or {}),
-        prior_drive=system.drive_dim if _prior_drive(model, prior) else 0,
-    )
-    in_size = inputs.core_input_size(group, measurement_dim, input_dim)
-    gain, offset, centering, ramp = _update_form(model, inputs)
-    core_cls = _core_class(model.core, import_core)
-    core = core_cls(
-        in_size,
-        core_output_size(group, inputs, gain, offset),
-        hidden_size=model.hidden_size,
-        num_layers=model.num_layers,
-    )
+    context = {"system": system, "dt": dt if dt is not None else getattr(system, "dt", None),
+               "dim": measurement_dim, "input_dim": input_dim}
+    measurement = build_piece("measurement", blocks["measurement"], "model.measurement", context)
+    prior = build_piece("prior", blocks["prior"], "model.prior", context)
+    features = [
+        build_piece("feature", b, f"model.features[{i}]", context)
+        for i, b in enumerate(blocks["features"])
+    ]
+    head = build_piece("head", blocks["head"], "model.head", context)
+    scales = [
+        build_piece("scale", b, f"model.scales[{i}]", context) for i, b in enumerate(blocks["scales"])
+    ]
     rules = dict(model.updates)
     unknown = sorted(set(rules) - set(group.factor_names))
     if unknown:
@@ -146,161 +142,134 @@ def build_observer(
             f"model.updates names factors {unknown} that the group {group!r} does not have; "
             f"its factors: {list(group.factor_names)}."
         )
-    update = {name: rules.get(name, model.default_update) for name in group.factor_names}
-    robust_drive, robust_innovation = _robust_weights(model, prior, system, inputs)
+    update = GroupUpdate(
+        {name: rules.get(name, model.default_update) for name in group.factor_names},
+        torch_dtype(model.state_dtype, "model.state_dtype"),
+    )
+    bound = measurement.bind(group)
+    for where, piece in [("model.prior", prior), ("model.head", head)] + [
+        (f"model.features[{i}]", f) for i, f in enumerate(features)
+    ] + [(f"model.scales[{i}]", s) for i, s in enumerate(scales)]:
+        try:
+            piece.bind(group, bound)
+        except ValueError as err:
+            raise ValueError(f"{where} ({piece.name}): {err}") from None
+    width = sum(f.width for f in features)
+    core = _core_class(model.core, import_core)(
+        width,
+        head.output_size(group.tangent_dim, bound.innovation_dim),
+        hidden_size=model.hidden_size,
+        num_layers=model.num_layers,
+    )
+    head.reset(core)
     observer = ResidualObserver(
-        group,
-        measurement_dim,
-        input_dim,
-        core,
-        update=update,
-        inputs=inputs,
-        state_dtype=torch_dtype(model.state_dtype, "model.state_dtype"),
-        output_scale=float(getattr(model, "output_scale", 1.0)),
-        prior=prior,
-        prior_drive=(
-            system.compensated_drive if inputs.prior_drive or robust_drive is not None else None
-        ),
-        gain=gain,
-        offset=offset,
-        centering=centering,
-        centering_ramp=ramp,
-        centering_factors=dict(getattr(model, "centering_factors", None) or {}),
-        step_decay=dict(getattr(model, "step_decay", None) or {}),
-        prior_step=system.step if robust_drive is not None else None,
-        robust_drive=robust_drive,
-        robust_innovation=robust_innovation,
+        group, measurement, core, update=update, prior=prior, features=features, head=head,
+        scales=scales,
     )
     return observer.to(torch_dtype(model.net_dtype, "model.net_dtype"))
 
 
-def _update_form(model: ModelConfig | Any, inputs: ObserverInputs) -> tuple[bool, bool, float, int]:
-    """``model.gain``, ``model.gain_offset``, ``model.centering`` and ``model.centering_ramp``,
-    checked against each other and the inputs."""
-    gain = getattr(model, "gain", False)
-    if not isinstance(gain, bool):
-        raise ValueError(f"model.gain must be true or false, got {gain!r}.")
-    if gain and not inputs.innovation:
-        raise ValueError(
-            "model.gain=true multiplies a learned gain with the innovation, but model.innovation "
-            "is empty; name the measured factors there (e.g. {R: [0, 9], p: [9, 12]}) or set "
-            "model.gain=false."
-        )
-    offset = getattr(model, "gain_offset", True)
-    if not offset and not gain:
-        raise ValueError(
-            "model.gain_offset=false (v = K nu) is a form of the gain head; set model.gain=true."
-        )
-    centering = getattr(model, "centering", 0.0)
-    if isinstance(centering, bool) or not isinstance(centering, (int, float)) or not (
-        0 <= centering <= 1
-    ):
-        raise ValueError(f"model.centering must be a number in [0, 1], got {centering!r}.")
-    if centering and not inputs.innovation:
-        raise ValueError(
-            "model.centering subtracts the core's output at zero innovation, but "
-            "model.innovation is empty; name the measured factors there (e.g. {R: [0, 9], "
-            "p: [9, 12]}) or set model.centering=0."
-        )
-    if centering and (getattr(model, "prior", "none") or "none") == "none" and not inputs.propagate:
-        raise ValueError(
-            "model.centering subtracts the core's output at the measurement its prediction "
-            "expects, but the observer has no prediction (model.prior=none, no model.propagate): "
-            "then that output is the motion itself, and centring takes it away. Set "
-            "model.prior=system (model=small_relative_prior) or model.centering=0."
-        )
-    ramp = getattr(model, "centering_ramp", 0)
-    if isinstance(ramp, bool) or not isinstance(ramp, int) or ramp < 0:
-        raise ValueError(f"model.centering_ramp must be an integer >= 0 (steps), got {ramp!r}.")
-    if ramp and not centering:
-        raise ValueError(
-            f"model.centering_ramp={ramp} ramps in the centred update, but model.centering is 0; "
-            "set model.centering (0 < c <= 1) or model.centering_ramp=0."
-        )
-    return gain, offset, float(centering), ramp
+def _block(value: Any, where: str) -> dict:
+    """A block as a plain dict: a name alone is ``{type: name}``."""
+    if isinstance(value, str):
+        return {"type": value}
+    if hasattr(value, "items"):
+        return {str(k): _plain(v) for k, v in value.items()}
+    raise ValueError(f"{where} must be a block ({{type: <name>, ...}}) or a name, got {value!r}.")
 
 
-#: The values of ``model.prior``.
-PRIORS = ("none", "system")
+def _plain(value: Any) -> Any:
+    if isinstance(value, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(value, resolve=True)
+    return value
 
 
-def _model_prior(model: ModelConfig | Any, system: System | None):
-    """The prior callable of ``model.prior`` (``None`` for ``none``), checked before any work."""
-    name = getattr(model, "prior", "none") or "none"
-    if name not in PRIORS:
-        raise ValueError(
-            f"model.prior={name!r} is not one of {PRIORS} (system: the system's nominal "
-            "prediction System.predict moves the estimate before the learned update)."
-        )
-    if name == "none":
-        return None
-    if system is None:
-        raise ValueError(
-            "model.prior=system needs the system: pass build_observer(..., system=system)."
-        )
-    if list(model.relax):
-        raise ValueError(
-            f"model.prior=system predicts on the system's own group; it cannot be combined with "
-            f"model.relax={list(model.relax)} (factors taken off the group)."
-        )
-    return system.predict
-
-
-def _prior_drive(model: ModelConfig | Any, prior) -> bool:
-    """``model.prior_drive``, checked: a boolean, and only with a model prior."""
-    on = getattr(model, "prior_drive", False)
-    if not isinstance(on, bool):
-        raise ValueError(f"model.prior_drive must be true or false, got {on!r}.")
-    if on and prior is None:
-        raise ValueError(
-            "model.prior_drive=true has the core read the drive the model prior integrates, "
-            "but there is no model prior; set model.prior=system (model=small_relative_prior) "
-            "or model.prior_drive=false."
-        )
-    return on
-
-
-def _robust_weights(
-    model: ModelConfig | Any, prior, system: System | None, inputs: ObserverInputs
-) -> tuple[RobustWeights | None, RobustWeights | None]:
-    """The learned robust weights of ``model.robust_drive`` and ``model.robust_innovation``
-    (their widths; 0: none) with ``model.robust_span``, checked before any work."""
-    widths = {}
-    for key in ("robust_drive", "robust_innovation"):
-        width = getattr(model, key, 0)
-        if isinstance(width, bool) or not isinstance(width, int) or width < 0:
+def model_blocks(model: ModelConfig | Any) -> dict[str, Any]:
+    """The piece blocks of ``model``: ``measurement``, ``prior``, ``features``, ``head``,
+    ``scales``. A config in the first format (flat keys) is translated, with a
+    ``FutureWarning`` that shows the blocks to write instead; both at once is an error."""
+    get = model.get if hasattr(model, "get") else (lambda k, d=None: getattr(model, k, d))
+    prior = _plain(get("prior", None))
+    old_prior = prior if isinstance(prior, str) else "none"
+    flat = blocks_from_flat(model, old_prior)
+    new = {
+        "measurement": _plain(get("measurement", None)) or {},
+        "prior": prior if not isinstance(prior, str) else None,
+        "features": _plain(get("features", None)),
+        "head": _plain(get("head", None)) or {},
+        "scales": _plain(get("scales", None)) or [],
+    }
+    given = [k for k, v in new.items() if v not in (None, {}, [])]
+    if flat is not None:
+        if given:
             raise ValueError(
-                f"model.{key} must be an integer >= 0 (the steps of each learned weight "
-                f"function; 0: none), got {width!r}."
+                f"the model config sets both the flat keys {flat_keys_set(model) or ['prior']} of "
+                f"the first format and the blocks {given}; write the blocks only: "
+                f"{_yaml(flat)}"
             )
-        widths[key] = width
-    span = check_span(getattr(model, "robust_span", 4.0), "model.robust_span")
-    drive = innovation = None
-    if widths["robust_drive"]:
-        if prior is None:
-            raise ValueError(
-                "model.robust_drive weighs the drive the model prior steps with, but there is no "
-                "model prior; set model.prior=system (model=small_relative_prior) or "
-                "model.robust_drive=0."
-            )
-        if type(system).predict is not System.predict:
-            raise ValueError(
-                f"model.robust_drive steps the weighted drive with {type(system).__name__}.step, "
-                f"but {type(system).__name__} overrides predict, so its prior may not be "
-                "step(x, compensated_drive(x, y, u)). Write the prediction's drive in "
-                "compensated_drive and leave predict to the base class, or set "
-                "model.robust_drive=0."
-            )
-        drive = RobustWeights(system.drive_dim, widths["robust_drive"], span)
-    if widths["robust_innovation"]:
-        if not inputs.innovation:
-            raise ValueError(
-                "model.robust_innovation weighs the innovation, but model.innovation is empty; "
-                "name the measured factors there (e.g. {R: [0, 9], p: [9, 12]}) or set "
-                "model.robust_innovation=0."
-            )
-        innovation = RobustWeights(len(inputs.innovation), widths["robust_innovation"], span)
-    return drive, innovation
+        warnings.warn(
+            f"the model config's flat keys {flat_keys_set(model) or ['prior']} are deprecated; "
+            f"write these blocks instead (configs/model/ has examples): {_yaml(flat)}",
+            FutureWarning,
+            stacklevel=3,
+        )
+        return flat
+    measurement = _block(new["measurement"], "model.measurement") if new["measurement"] else {}
+    features = new["features"]
+    if features is None:
+        features = ["embedding", "readings"] + (["innovation"] if measurement.get("factors") else [])
+    return {
+        "measurement": {"type": "measurement", **measurement},
+        "prior": _block(new["prior"] or "none", "model.prior"),
+        "features": [_block(f, f"model.features[{i}]") for i, f in enumerate(features)],
+        "head": _block(new["head"] or "plain", "model.head"),
+        "scales": [_block(s, f"model.scales[{i}]") for i, s in enumerate(new["scales"])],
+    }
+
+
+def _yaml(blocks: dict) -> str:
+    import yaml
+
+    return "\n" + yaml.safe_dump(blocks, sort_keys=False, default_flow_style=None)
+
+
+#: Arguments a builder supplies to a piece when its constructor takes them: the system (a system
+#: prior), the step length (a kinematic prior), the measurement's sizes.
+_CONTEXT = ("system", "dt", "dim", "input_dim")
+
+
+def build_piece(kind: str, block: dict, where: str, context: dict | None = None):
+    """The piece of ``kind`` that ``block`` names (``{type: name, **arguments}``), its
+    arguments checked against the piece's constructor; errors name ``where``. Nested blocks
+    (a centred head's ``inner``) are built likewise. Nothing is imported."""
+    block = dict(block)
+    cls = piece_class(kind, block.pop("type", None), f"{where}.type")
+    params = inspect.signature(cls.__init__).parameters
+    allowed = [p for p in params if p != "self" and p not in _CONTEXT]
+    unknown = sorted(set(block) - set(allowed))
+    if unknown:
+        raise ValueError(
+            f"{where} ({cls.name}): unknown key(s) {unknown}; a {cls.name} {kind} takes "
+            f"{allowed or 'no arguments'}."
+        )
+    if "inner" in block:
+        block["inner"] = build_piece(kind, _block(block["inner"], f"{where}.inner"),
+                                     f"{where}.inner", context)
+    for name in _CONTEXT:
+        if name in params and name not in block and context and context.get(name) is not None:
+            block[name] = context[name]
+    missing = [
+        p for p, spec in params.items()
+        if p != "self" and spec.default is inspect.Parameter.empty and p not in block
+        and spec.kind not in (spec.VAR_POSITIONAL, spec.VAR_KEYWORD)
+    ]
+    if missing:
+        need = " (pass build_observer(..., system=system))" if "system" in missing else ""
+        raise ValueError(f"{where} ({cls.name}): needs {missing}{need}.")
+    try:
+        return cls(**block)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{where} ({cls.name}): {err}") from None
 
 
 def build_estimator_factory(system: System, method: MethodConfig | Any) -> Callable[..., Any]:

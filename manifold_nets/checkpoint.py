@@ -4,9 +4,11 @@ A checkpoint is one ``torch.save`` file holding only tensors and plain Python da
 lists, strings, numbers), so it loads with ``torch.load(weights_only=True)``: no pickled
 module, no code execution on load. Keys:
 
-* ``format``: ``"manifold_nets.checkpoint/1"``;
+* ``format``: ``"manifold_nets.checkpoint/2"`` (``/1``, the first format, with flat model keys,
+  still loads: :mod:`manifold_nets.observer.legacy`);
 * ``model``: the observer's ``state_dict``; ``signature``: what the model must match
-  (group, sizes, update rules, core) — loading into another model fails with a clear message;
+  (group, update rules, measurement, pieces, core) — loading into another model fails with a
+  clear message;
 * ``config``: the resolved run config (a plain dict), so a run can be rebuilt from it;
 * ``epoch``: the last finished epoch; optionally ``optimizer`` (its ``state_dict``), ``rng``
   (``torch.Generator`` states as byte tensors), ``best`` and ``history`` (for resuming).
@@ -35,14 +37,12 @@ __all__ = [
     "load_state",
     "resolve_checkpoint",
     "load_weights",
+    "observer_state",
 ]
 
-FORMAT = "manifold_nets.checkpoint/1"
-#: The signature's keys of the centred update and the step decay, which add no weight
-#: (``train.init_from``).
-_NO_WEIGHT = ("centering", "centering_ramp", "centering_factors", "step_decay")
-#: Learned robust weights, which ``train.init_from`` adds to an observer without them.
-_ROBUST = ("robust_drive", "robust_innovation")
+FORMAT = "manifold_nets.checkpoint/2"
+#: The first format: flat model keys in the config and the signature.
+FORMAT_V1 = "manifold_nets.checkpoint/1"
 
 
 class CheckpointError(ValueError):
@@ -102,7 +102,7 @@ def load_checkpoint(
             f"{path} is not a loadable checkpoint ({type(err).__name__}: {str(err)[:300]}); "
             "only files written by manifold_nets (plain data and tensors) load safely."
         ) from None
-    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+    if not isinstance(ckpt, dict) or ckpt.get("format") not in (FORMAT, FORMAT_V1):
         fmt = ckpt.get("format") if isinstance(ckpt, dict) else type(ckpt).__name__
         raise CheckpointError(f"{path} has format {fmt!r}, expected {FORMAT!r}.")
     check_contents(ckpt, path)
@@ -205,46 +205,49 @@ def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:
     return p
 
 
+def observer_state(model: torch.nn.Module, ckpt: dict, path: str | os.PathLike) -> dict:
+    """The checkpoint's ``state_dict`` for ``model`` after checking its signature; a checkpoint
+    of the first format is checked against the first format's signature of ``model`` and its
+    tensors renamed (:mod:`manifold_nets.observer.legacy`)."""
+    from .observer.legacy import flat_signature, state_from_v1
+
+    if ckpt.get("format") == FORMAT_V1:
+        check_signature(ckpt["signature"], flat_signature(model), where=str(path))
+        return state_from_v1(ckpt["model"])
+    check_signature(ckpt["signature"], model.signature(), where=str(path))
+    return ckpt["model"]
+
+
 def load_weights(
     model: torch.nn.Module,
     where: str | os.PathLike,
     map_location: str | torch.device = "cpu",
-    widen_gain: bool = False,
+    widen: bool = False,
 ) -> tuple[Path, dict[str, Any]]:
     """Loads the weights of ``where`` (a checkpoint, or a run folder: its ``best.pt``) into
     ``model`` after checking the checkpoint is for the same model (``model.signature()``).
 
-    With ``widen_gain`` (``train.init_from``) the checkpoint of an observer without the gain
-    head also loads into the same observer with one, which then starts out computing what the
-    checkpoint's does (``ResidualObserver.state_with_gain``: ``K = 0``), and the checkpoint of
-    an observer with another ``centering``, ``centering_ramp``, ``centering_factors`` or
-    ``step_decay`` (the centred update and the step decay; the same weights), and the checkpoint of an observer without clock inputs into one with them
-    (``ResidualObserver.state_with_inputs``: their weights zero), likewise without the framed
-    innovation (``model.innovation_frame``) or the prior's drive (``model.prior_drive``), and
-    the checkpoint of an observer without learned robust weights into one with them
-    (``ResidualObserver.state_with_robust``: the identity).
+    With ``widen`` (``train.init_from``) the checkpoint of an observer with fewer pieces (a
+    feature, learned robust weights, a gain head it lacked) or other settings of weightless
+    pieces (a centring, a step decay) loads too, so that ``model`` starts out computing what
+    the checkpoint's observer does (:func:`manifold_nets.observer.widen.widen_state`; a
+    checkpoint of the first format loads only into the same observer).
 
     Returns the file and the checkpoint's contents.
     """
+    from .observer.widen import widen_state
+
     path = resolve_checkpoint(where, name="best.pt")
     ckpt = load_checkpoint(path, map_location=map_location)
-    found = ckpt["signature"]
-    if widen_gain:  # the centred update and the decay add no weight: they load across values
-        found = {k: v for k, v in found.items() if k not in _NO_WEIGHT}
-        own = model.signature()
-        found.update({k: own[k] for k in _NO_WEIGHT if k in own})
-    inputs = getattr(model, "inputs", None)
-    appended = inputs.appended() if hasattr(inputs, "appended") else []
-    if widen_gain and any(not found.get(key) for key, _, _ in appended):
-        state, found = model.state_with_inputs(ckpt["model"], found, where=str(path))
-        ckpt = {**ckpt, "model": state}
-    own_sig = model.signature() if widen_gain else {}
-    if widen_gain and any(found.get(k) != own_sig.get(k) for k in _ROBUST):
-        state, found = model.state_with_robust(ckpt["model"], found, where=str(path))
-        ckpt = {**ckpt, "model": state}
-    if widen_gain and getattr(model, "gain", False) and not found.get("gain"):
-        ckpt = {**ckpt, "model": model.state_with_gain(ckpt["model"], found, where=str(path))}
+    if widen and ckpt.get("format") == FORMAT:
+        try:
+            state = widen_state(model, ckpt["model"], ckpt["signature"])
+        except (ValueError, KeyError) as err:
+            raise CheckpointError(
+                f"{path} cannot start this model ({err}). Build the model with the checkpoint's "
+                "config, or point to the right checkpoint."
+            ) from None
     else:
-        check_signature(found, model.signature(), where=str(path))
-    load_state(model, ckpt, path)
+        state = observer_state(model, ckpt, path)
+    load_state(model, {**ckpt, "model": state}, path)
     return path, ckpt

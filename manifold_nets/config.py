@@ -65,102 +65,73 @@ class DatasetConfig:
 
 @dataclass
 class ModelConfig:
-    """The observer: core sizes, per-factor update rules, dtypes (``configs/model/``)."""
+    """The observer (``configs/model/``): the core, the group update and the pieces it is made of.
 
-    #: ``gru`` (the paper's GRU stack + linear head) or the dotted path of a
-    #: :class:`manifold_nets.observer.RecurrentCore` subclass called with
+    Each piece is a block naming a registered piece by ``type`` with that piece's arguments
+    (:mod:`manifold_nets.observer`; docs/observer.md lists them)::
+
+        measurement: {factors: {R: [0, 9], p: [9, 12]}}        # type: measurement | robust
+        prior: {type: system}                                    # none | system | robust_system | kinematic
+        features: [embedding, readings, innovation]              # or {type: embedding, drop: [p]}
+        head: {type: centred, c: 0.85, ramp: 50}                 # plain | gain | centred
+        scales: [{type: step_decay, factors: {b_v: 70}}]         # output | step_decay
+
+    The flat keys of the first format (``innovation``, ``relative_only``, ``rotated``,
+    ``propagate``, ``gain``, ``gain_offset``, ``centering``, ``centering_ramp``,
+    ``centering_factors``, ``step_decay``, ``robust_drive``, ``robust_innovation``,
+    ``robust_span``, ``output_scale``, and ``prior: system``) still work, with a deprecation
+    warning that shows the blocks they mean (:mod:`manifold_nets.observer.legacy`).
+    """
+
+    #: ``gru`` (the paper's GRU stack + linear head) or a registered
+    #: :class:`manifold_nets.cores.RecurrentCore` subclass by dotted path, called with
     #: ``(input_size, output_size, hidden_size=, num_layers=)``.
     core: str = "gru"
     hidden_size: int = 512
     num_layers: int = 2
-    #: Rule of every factor not named in ``updates``: ``residual`` (x·exp(v)) or ``absolute``.
+    #: Rule of every factor not named in ``updates``: ``residual`` (x·exp(v)), ``absolute``, ``left``.
     default_update: str = "residual"
     #: Per-factor rules by factor name, e.g. ``{b_omega: absolute, b_v: absolute}`` (the paper).
     updates: dict[str, str] = field(default_factory=dict)
-    #: Innovation inputs (an extension; empty = the paper's inputs): ``{factor: [start, stop]}``
-    #: where ``y[start:stop]`` is that factor's measured embedding, e.g. ``{R: [0, 9], p: [9, 12]}``
-    #: for the rigid body; the core also reads ``log(xhat_f^-1 m_f)`` per factor.
-    innovation: dict[str, list[int]] = field(default_factory=dict)
     #: Factors taken off their group (an ablation): each named factor is replaced by the vector
-    #: space of its embedding (``manifold_nets.relax``), so with ``updates: {R: absolute}`` the
-    #: core predicts ``vec R`` directly, unconstrained. Empty: the observer of the paper.
+    #: space of its embedding (``manifold_nets.relax``). Empty: the observer of the paper.
     relax: list[str] = field(default_factory=list)
-    #: Factors the core reads only through their innovation (each needs an ``innovation`` span):
-    #: their absolute estimate and measurement are left out of its input, e.g. ``[p]`` for a
-    #: rigid body, which makes the observer invariant to translations (an extension).
-    relative_only: list[str] = field(default_factory=list)
-    #: Body-frame 3-vectors in ``(y, u)`` the core also reads rotated to the world frame by an
-    #: SO(3) factor's estimate, ``{factor: [[start, stop], ...]}``, e.g. ``{R: [[0, 3], [3, 6]]}``
-    #: for an accelerometer and a magnetometer (an extension; ``manifold_nets.inputs``).
-    rotated: dict[str, list[list[int]]] = field(default_factory=dict)
-    #: A kinematic prior: ``{factor: [start, stop]}``, the span of ``(y, u)`` holding the
-    #: factor's velocity; before the learned update ``x_f <- x_f · exp(system.dt · u_f)``, e.g.
-    #: ``{R: [6, 9]}`` for a gyroscope (an extension; ``manifold_nets.inputs``).
-    propagate: dict[str, list[int]] = field(default_factory=dict)
-    #: Clock inputs: time constants in steps, e.g. ``[10, 100, 1000]``; the core also reads
-    #: ``tau / (tau + k)`` for each, ``k`` the steps taken, so a gain can fall as a filter's does
-    #: (an extension; ``manifold_nets.inputs``). ``train.init_from`` widens an observer without
-    #: them (their weights start at zero). Empty: none.
-    clock: list[float] = field(default_factory=list)
-    #: A framed innovation: ``{vector factor: rotation factor}``, e.g. ``{p: R}``; the core also
-    #: reads the vector factor's innovation in the rotation's estimated frame,
-    #: ``Rhat^T (p^m - phat)`` (needs the vector factor in ``innovation``; an extension;
-    #: ``manifold_nets.inputs``). ``train.init_from`` widens an observer without it (zero
-    #: weights). Empty: none.
-    innovation_frame: dict[str, str] = field(default_factory=dict)
-    #: A model prior: ``none`` or ``system``, the system's nominal prediction
-    #: (``System.predict``: for the rigid body the step with the bias-corrected readings) moves
-    #: the estimate before the learned update, which then only corrects it (an extension).
-    prior: str = "none"
-    #: With ``prior: system``, the core also reads the drive the prior integrated,
-    #: ``System.compensated_drive`` (the rigid body's bias-corrected readings), last: an
-    #: outlying reading is then a plain input (an extension; ``manifold_nets.inputs``).
-    #: ``train.init_from`` widens an observer without it (zero weights).
-    prior_drive: bool = False
-    #: The gain head: the core outputs an offset ``a`` and a gain ``K`` and the update is
-    #: ``v = a + K nu``, ``nu`` the innovation (needs ``innovation``; an extension).
-    gain: bool = False
-    #: With the gain head, ``false`` drops the offset: ``v = K nu``, no correction without an
-    #: innovation, so the exact truth is a fixed point at zero noise.
-    gain_offset: bool = True
-    #: The centred update, ``c`` in ``[0, 1]``: ``v = T(z) - c T(z^0)``, less ``c`` times what
-    #: the core outputs when each innovation factor is measured exactly at its prediction
-    #: (needs ``innovation``). At 1 a zero innovation moves nothing but the prior. It adds no
-    #: weight (``train.init_from`` starts it from any other value). 0: none.
-    centering: float = 0.0
-    #: The centring ramps in over the first this many steps, ``c_k = c min(1, k / K)``: the
-    #: start-up, where the network pulls large errors in through its memory, stays uncentred
-    #: (needs ``centering``). 0: the full ``c`` from the first step.
-    centering_ramp: int = 0
-    #: Another ``c`` for some factors, ``{factor: c_f}`` (ramped alike; needs ``centering``),
-    #: e.g. ``{b_omega: 0.95, b_v: 0.95}``: the rigid body's biases centred more than its pose.
-    #: It adds no weight. Empty: every factor at ``centering``.
-    centering_factors: dict[str, float] = field(default_factory=dict)
-    #: Step-size decay for some factors, ``{factor: K_f}``: their tangent components of the step
-    #: from ``x_k`` are scaled by ``min(1, K_f / k)``, so after ``K_f`` steps they fall like
-    #: ``1 / k``, as a Kalman gain on a constant does; for factors the system keeps constant,
-    #: e.g. ``{b_omega: 50, b_v: 100}``: the rigid body's biases. It adds no weight. Empty: none.
-    step_decay: dict[str, int] = field(default_factory=dict)
-    #: Learned robust weights on the drive the model prior steps with (needs ``prior: system``
-    #: and a system that leaves ``predict`` to the base class): each component becomes
-    #: ``w_i(|d_i|) d_i``, ``w_i`` an M-estimator weight function of this many smooth steps,
-    #: learned, the identity when new (``manifold_nets.robust``); a reading the motion cannot
-    #: produce is pulled in before it moves the prediction. ``train.init_from`` adds it to an
-    #: observer without it. 0: none.
-    robust_drive: int = 0
-    #: Learned robust weights on the innovation: each innovation factor's ``nu_f`` becomes
-    #: ``w_f(||nu_f||) nu_f``, and the core reads the measurement that implies (a learned gate on
-    #: implausible measurements; needs ``innovation``). ``train.init_from`` adds it. 0: none.
-    robust_innovation: int = 0
-    #: Where the learned weight functions' steps start: evenly over ``[0, robust_span]``, in the
-    #: units of the drive and the innovation norms.
-    robust_span: float = 4.0
-    #: The core's output times this is the tangent vector (small corrections: e.g. 0.01).
-    output_scale: float = 1.0
+    #: The measurement block: ``factors: {name: [start, stop]}``, the spans of ``y`` that hold a
+    #: factor's embedding (its innovation is then read); ``type: robust`` (with ``width``,
+    #: ``span``) weighs each innovation by a learned robust weight. Empty: nothing measured.
+    measurement: dict[str, Any] = field(default_factory=dict)
+    #: The prior block (``type: none | system | robust_system | kinematic``); ``null``: none.
+    #: (A string ``none``/``system`` is the first format's.)
+    prior: Any = None
+    #: The feature blocks, in order (a name alone is ``{type: name}``); ``null``: the paper's
+    #: ``[embedding, readings]``, with ``innovation`` when the measurement names factors.
+    features: Optional[list[Any]] = None
+    #: The head block (``type: plain | gain | centred``); empty: plain.
+    head: dict[str, Any] = field(default_factory=dict)
+    #: The step-scale blocks, in order (``type: output | step_decay``).
+    scales: list[Any] = field(default_factory=list)
     #: dtype of the group state (``float64`` keeps the estimate on the group to ~1e-14).
     state_dtype: str = "float64"
     #: dtype of the network's parameters.
     net_dtype: str = "float32"
+    # the first format's flat keys (deprecated; manifold_nets.observer.legacy)
+    innovation: dict[str, list[int]] = field(default_factory=dict)
+    relative_only: list[str] = field(default_factory=list)
+    rotated: dict[str, list[list[int]]] = field(default_factory=dict)
+    propagate: dict[str, list[int]] = field(default_factory=dict)
+    clock: list[float] = field(default_factory=list)
+    innovation_frame: dict[str, str] = field(default_factory=dict)
+    prior_drive: bool = False
+    gain: bool = False
+    gain_offset: bool = True
+    centering: float = 0.0
+    centering_ramp: int = 0
+    centering_factors: dict[str, float] = field(default_factory=dict)
+    step_decay: dict[str, int] = field(default_factory=dict)
+    robust_drive: int = 0
+    robust_innovation: int = 0
+    robust_span: float = 4.0
+    output_scale: float = 1.0
 
 
 @dataclass

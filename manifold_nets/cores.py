@@ -119,6 +119,12 @@ class GRUCore(RecurrentCore):
             out.append(h)
         return self.head(h), tuple(out)
 
+    def zero_output(self, start: int = 0) -> None:
+        """Sets the output layer's rows from ``start`` on to zero (where a head starts)."""
+        with torch.no_grad():
+            self.head.weight[start:].zero_()
+            self.head.bias[start:].zero_()
+
     def signature(self) -> dict:
         return {
             **super().signature(),

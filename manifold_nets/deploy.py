@@ -22,10 +22,10 @@ the core's state, each ``(B, ...)`` in the network dtype; ``y`` ``(B, measuremen
 state dtype (the measured factors of innovation inputs are read in it; the network reads ``y``
 cast to its dtype); ``u`` ``(B, input_dim)`` in the network dtype, only when ``input_dim > 0``.
 It returns ``(x_next, *hidden_next)``, the same values as :meth:`ResidualObserver.step`. An
-observer with a centring ramp (``centering_ramp=K``), clock inputs (``ObserverInputs.clock``) or
-a step decay (``step_decay``) has one more state tensor after the hidden ones, ``steps`` ``(B,)``
-in the network dtype: the steps taken (with a ramp only, the count stops at ``K``; otherwise it
-is exact in float32 up to 2^24 steps).
+observer with a piece that depends on the step count (a centred head, a step decay) has one
+more state tensor after the hidden ones, ``steps`` ``(B,)`` in the network dtype: the steps
+taken, exact in float32 up to 2^24 steps. ``y`` and ``u`` may be any views (they are made
+contiguous before use).
 """
 
 from __future__ import annotations
@@ -53,26 +53,26 @@ class OnlineStep(nn.Module):
     """One unchecked step of ``observer``: ``forward(x, *hidden, y[, u]) -> (x, *hidden)``.
 
     See the module docstring for the shapes and dtypes. The observer's parameters are shared,
-    not copied.
+    not copied. It runs :meth:`ResidualObserver.step_unchecked` with
+    :meth:`ResidualObserver.schedule_at`, the rollout's own step and schedule.
     """
 
     def __init__(self, observer: ResidualObserver):
         super().__init__()
         self.observer = observer
-        #: a centring ramp, clock inputs or a step decay need the step count: one more state
-        #: tensor, ``steps`` ``(B,)``
-        self.clock = bool(observer.centering_ramp or observer.inputs.clock or observer.step_decay)
+        #: a piece that depends on the step count (a centred head, a step decay) needs the
+        #: count: one more state tensor, ``steps`` ``(B,)``
+        self.clock = observer.uses_step_count
         self.num_hidden = len(observer.core.initial_hidden(1)) + self.clock
 
     def state_names(self) -> list[str]:
-        """The names of the state tensors after ``x``: ``hidden0, ..`` and ``steps`` (a ramp,
-        clock inputs or a step decay)."""
+        """The names of the state tensors after ``x``: ``hidden0, ..`` and ``steps``."""
         names = [f"hidden{i}" for i in range(self.num_hidden - self.clock)]
         return names + (["steps"] if self.clock else [])
 
     def initial_state(self, batch: int = 1) -> tuple[torch.Tensor, ...]:
         """``(x, *hidden)`` before the first step: the identity and the core's initial state (and
-        the step count, 0, with a centring ramp, clock inputs or a step decay)."""
+        the step count, 0, when a piece depends on it)."""
         obs = self.observer
         x, hidden, _ = obs.init_state(batch)
         steps = (torch.zeros(batch, dtype=obs.net_dtype, device=obs.device),) if self.clock else ()
@@ -94,27 +94,16 @@ class OnlineStep(nn.Module):
                 + (", u)" if obs.input_dim else ")")
                 + f", got {1 + len(args)} tensors."
             )
-        hidden, y = tuple(args[: self.num_hidden]), args[self.num_hidden]
-        net = obs.net_dtype
-        context = y.to(net) if not obs.input_dim else torch.cat((y.to(net), args[-1].to(net)), -1)
-        u = args[-1] if obs.input_dim else None
-        c, features, decay, clock = None, None, None, ()
-        if self.clock:  # c_k = c min(1, k / K) per sequence; with a ramp only, the count stops
-            hidden, k = hidden[:-1], hidden[-1]  # at K
-            if obs.centering_ramp:
-                c = obs.centering_at(k).unsqueeze(-1)
-            if obs.inputs.clock:
-                features = obs.inputs.clock_features(k)
-            decay = obs.decay_at(k)
-            if obs.inputs.clock or obs.step_decay:
-                clock = (k + 1,)
-            else:
-                clock = ((k + 1).clamp(max=obs.centering_ramp),)
-        x, hidden = obs._step(
-            x, hidden, obs._context(context), obs._measured(y), obs._readings(y, u), c, features,
-            decay,
-        )
-        return (x, *hidden, *clock)
+        hidden, y = tuple(args[: self.num_hidden]), args[self.num_hidden].contiguous()
+        parts = [y] if not obs.input_dim else [y, args[-1].contiguous()]
+        yu = torch.cat([p.to(obs.net_dtype) for p in parts], -1)
+        ys = torch.cat([p.to(obs.state_dtype) for p in parts], -1)
+        timed, count = [None] * (1 + len(obs.scales)), ()
+        if self.clock:  # per sequence, in float64 like the rollout's schedule
+            hidden, k = hidden[:-1], hidden[-1]
+            timed, count = obs.schedule_at(k.to(torch.float64)), (k + 1,)
+        x, hidden = obs.step_unchecked(x, hidden, yu, ys, obs.measurement.elements(ys), timed)
+        return (x, *hidden, *count)
 
 
 def _meta(step: OnlineStep, batch: int | None) -> dict[str, Any]:

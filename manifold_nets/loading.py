@@ -32,6 +32,7 @@ system the data came from (they are the run's), nor anything about the estimates
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Any, NamedTuple
 
@@ -40,7 +41,7 @@ import yaml
 from omegaconf import DictConfig, OmegaConf
 
 from .builders import build_observer
-from .checkpoint import check_signature, load_checkpoint, resolve_checkpoint
+from .checkpoint import load_checkpoint, load_state, observer_state, resolve_checkpoint
 from .config import RunConfig
 from .observer import ResidualObserver
 from .system import SYSTEMS, System
@@ -170,12 +171,13 @@ def load_observer(
     except Exception as err:  # omegaconf's validation errors
         msg = str(err).splitlines()[0]
         raise ArtefactError(f"{where} does not fit the run schema: {msg}.") from None
-    model = build_observer(
-        system.group, system.measurement_dim, system.input_dim, cfg.model, import_core=False,
-        dt=getattr(system, "dt", None), system=system,
-    )
+    with warnings.catch_warnings():  # a file's first-format keys: the reader's business
+        warnings.simplefilter("ignore", FutureWarning)
+        model = build_observer(
+            system.group, system.measurement_dim, system.input_dim, cfg.model, import_core=False,
+            dt=getattr(system, "dt", None), system=system,
+        )
     if ckpt is None:
         ckpt = load_checkpoint(ckpt_file, map_location=map_location)
-    check_signature(ckpt["signature"], model.signature(), where=str(ckpt_file))
-    model.load_state_dict(ckpt["model"])
+    load_state(model, {**ckpt, "model": observer_state(model, ckpt, ckpt_file)}, ckpt_file)
     return LoadedObserver(model.to(map_location).eval(), system, cfg)

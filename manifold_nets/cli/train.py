@@ -164,7 +164,7 @@ def train(
     """
     t, info = cfg.train, {}
     if t.init_from:
-        path, ckpt = load_weights(model, absolute(t.init_from), model.device, widen_gain=True)
+        path, ckpt = load_weights(model, absolute(t.init_from), model.device, widen=True)
         info["init_from"] = str(path)
         log.info("starting from the weights of %s (epoch %s)", path, ckpt["epoch"])
     dataset = OmegaConf.to_object(cfg.dataset)

@@ -1,0 +1,35 @@
+"""The observer: the paper's loop in one short class, and the pieces a config lists.
+
+======================  ====================================================================
+the loop                :class:`ResidualObserver`, :class:`ObserverState`
+the group update        :class:`GroupUpdate` (per-factor rules, the state dtype)
+what it reads           :class:`Measurement`, :class:`RobustMeasurement`
+priors                  :class:`NoPrior`, :class:`SystemPrior`, :class:`RobustSystemPrior`,
+                        :class:`KinematicPrior`
+features                :class:`Embedding`, :class:`Readings`, :class:`Innovation`,
+                        :class:`Rotated`, :class:`FramedInnovation`
+heads                   :class:`PlainHead`, :class:`GainHead`, :class:`CentredHead`
+step scales             :class:`OutputScale`, :class:`StepDecay`
+your own piece          subclass :class:`Prior`, :class:`Feature`, :class:`Head` or
+                        :class:`StepScale` with a ``name``: a config may then name it
+======================  ====================================================================
+"""
+
+from .features import Embedding, Feature, FramedInnovation, Innovation, Readings, Rotated
+from .heads import CentredHead, GainHead, Head, PlainHead
+from .measurement import Measurement, RobustMeasurement, StepView
+from .observer import ObserverState, ResidualObserver
+from .piece import PIECES, Piece
+from .priors import KinematicPrior, NoPrior, Prior, RobustSystemPrior, SystemPrior
+from .robust import RobustWeights
+from .scales import OutputScale, StepDecay, StepScale
+from .update import UPDATE_RULES, GroupUpdate
+
+__all__ = [
+    "ResidualObserver", "ObserverState", "GroupUpdate", "UPDATE_RULES",
+    "Measurement", "RobustMeasurement", "StepView", "Piece", "PIECES",
+    "Prior", "NoPrior", "SystemPrior", "RobustSystemPrior", "KinematicPrior",
+    "Feature", "Embedding", "Readings", "Innovation", "Rotated", "FramedInnovation",
+    "Head", "PlainHead", "GainHead", "CentredHead",
+    "StepScale", "OutputScale", "StepDecay", "RobustWeights",
+]

@@ -1,0 +1,164 @@
+"""What the observer reads: the measurement ``y``, the input ``u``, and the factors ``y`` measures.
+
+:class:`Measurement` describes the data: ``dim`` (``l``, the size of ``y``), ``input_dim``
+(``m``) and ``factors = {name: (start, stop)}``, the spans of ``y`` holding a factor's embedding
+directly (the rigid body's ``y`` starts with ``vec R^m`` and ``p^m``). For each measured factor
+the step forms the *innovation* ``nu_f = log(xhat_f^-1 m_f)`` from the prediction to the measured
+element, which features (:class:`~manifold_nets.observer.features.Innovation`) and heads (the
+gain, the centring) read.
+
+:class:`RobustMeasurement` adds learned robust weights (an M-estimator's weight function per
+measured factor, :class:`~manifold_nets.observer.robust.RobustWeights`, the identity when new):
+``nu_f <- w_f(||nu_f||) nu_f``, and the measured columns of ``y`` the features read become the
+measurement that innovation implies, ``xhat_f exp(nu_f)``: a learned gate on implausible
+measurements.
+
+Per step the measurement makes the :class:`StepView` every feature and head reads.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import torch
+
+from .piece import Piece, check_factor, check_int, check_number
+from .robust import RobustWeights, safe_norm
+
+__all__ = ["Measurement", "RobustMeasurement", "StepView"]
+
+
+@dataclass
+class StepView:
+    """What one step's features and heads read.
+
+    ``x``: the prediction ``x^-`` ``(B, numel)`` in the state dtype; ``yu``: ``(y, u)``
+    ``(B, l + m)`` in the network dtype (measured columns as the core reads them); ``nu``: the
+    innovations ``(B, tangent_dim_f)`` per measured factor, in the network dtype.
+    """
+
+    x: torch.Tensor
+    yu: torch.Tensor
+    nu: list[torch.Tensor]
+    measurement: Measurement
+
+    def exact(self) -> StepView:
+        """The view had each measured factor been measured exactly at its prediction: the
+        innovations zero and the measured columns the prediction's embedding."""
+        m = self.measurement
+        yu = self.yu.clone()
+        for (f, xs, ys) in m.spans:
+            yu[:, ys] = f.embed(self.x[:, xs].unflatten(-1, f.element_shape)).reshape(
+                self.x.shape[0], -1
+            ).to(yu.dtype)
+        return StepView(self.x, yu, [torch.zeros_like(nu) for nu in self.nu], m)
+
+
+class Measurement(Piece):
+    """The measurement's size, the input's size and the factors ``y`` measures directly.
+
+    Args:
+        dim: ``l``, the size of a measurement ``y`` (>= 1).
+        input_dim: ``m``, the size of an input ``u`` (0: none).
+        factors: ``{factor name: (start, stop)}``, ``y[start:stop]`` that factor's embedding.
+    """
+
+    kind, name = "measurement", "measurement"
+
+    def __init__(self, dim: int, input_dim: int = 0, factors: Mapping[str, tuple] | None = None):
+        super().__init__()
+        self.dim = check_int("Measurement: dim", dim, 1)
+        self.input_dim = check_int("Measurement: input_dim", input_dim, 0)
+        self.factors = {}
+        for fname, span in dict(factors or {}).items():
+            try:
+                a, b = (int(i) for i in span)
+            except (TypeError, ValueError):
+                raise ValueError(
+                    f"measurement factors[{fname!r}] must be (start, stop) in y, got {span!r}."
+                ) from None
+            self.factors[str(fname)] = (a, b)
+
+    def bind(self, group, measurement=None) -> Measurement:
+        for fname, (a, b) in self.factors.items():
+            check_factor("measurement factors", group, fname)
+            dim = group.factor(fname).embedding_dim
+            if not (0 <= a < b <= self.dim and b - a == dim):
+                raise ValueError(
+                    f"measurement factors[{fname!r}] = ({a}, {b}) must be a span of y (size "
+                    f"{self.dim}) of the factor's embedding_dim = {dim} entries."
+                )
+        self.group = group
+        self.spans = [
+            (group.factor(n), group.element_slice(n), slice(a, b))
+            for n, (a, b) in self.factors.items()
+        ]
+        self.innovation_dim = sum(group.factor(n).tangent_dim for n in self.factors)
+        return self
+
+    def settings(self) -> dict:
+        return {"dim": self.dim, "input_dim": self.input_dim,
+                "factors": {k: list(v) for k, v in self.factors.items()}}
+
+    def elements(self, ys: torch.Tensor) -> list[torch.Tensor]:
+        """The measured factor elements ``(..., *element_shape)`` from ``(y, u)`` ``(..., l + m)``
+        in the state dtype, as given."""
+        return [f.unembed(ys[..., s]) for f, _, s in self.spans]
+
+    def view(self, x: torch.Tensor, yu: torch.Tensor, measured) -> StepView:
+        """The step's view at the prediction ``x`` (flat, state dtype) of ``(y, u)`` ``yu``
+        (network dtype) and the measured elements ``measured`` (state dtype)."""
+        nu = [
+            f.rminus(m, x[:, xs].unflatten(-1, f.element_shape))
+            for (f, xs, _), m in zip(self.spans, measured)
+        ]
+        return StepView(x, yu, [n.to(yu.dtype) for n in nu], self)
+
+
+class RobustMeasurement(Measurement):
+    """A :class:`Measurement` whose innovations pass learned robust weights (module docstring).
+
+    Args:
+        dim, input_dim, factors: as :class:`Measurement` (at least one factor).
+        width: steps of each learned weight function (>= 1).
+        span: where the steps start, evenly over ``[0, span]`` (> 0).
+    """
+
+    name = "robust"
+
+    def __init__(self, dim, input_dim=0, factors=None, width: int = 16, span: float = 4.0):
+        super().__init__(dim, input_dim, factors)
+        if not self.factors:
+            raise ValueError(
+                "a robust measurement weighs the innovations of the measured factors, but it "
+                "names none; give factors ({R: [0, 9], p: [9, 12]}) or use a plain measurement."
+            )
+        width = check_int("robust measurement: width", width, 1)
+        span = check_number("robust measurement: span", span, 1e-12, float("inf"))
+        self.weights = RobustWeights(len(self.factors), width, span)
+
+    def settings(self) -> dict:
+        return {**super().settings(), "width": self.weights.width, "span": self.weights.span}
+
+    def view(self, x, yu, measured) -> StepView:
+        nu = [
+            f.rminus(m, x[:, xs].unflatten(-1, f.element_shape))
+            for (f, xs, _), m in zip(self.spans, measured)
+        ]
+        norms = torch.stack([safe_norm(n) for n in nu], dim=-1)
+        w = self.weights(norms.to(yu.dtype)).to(norms.dtype)
+        nu = [n * w[:, i : i + 1] for i, n in enumerate(nu)]
+        yu = yu.clone()
+        for (f, xs, ys), n in zip(self.spans, nu):
+            m = f.rplus(x[:, xs].unflatten(-1, f.element_shape), n)
+            yu[:, ys] = f.embed(m).reshape(x.shape[0], -1).to(yu.dtype)
+        return StepView(x, yu, [n.to(yu.dtype) for n in nu], self)
+
+    def widen(self, state: dict, prefix: str, old: dict | None) -> dict:
+        """From a plain measurement of the same factors: the weights start as the identity."""
+        if old is not None and old.get("type") == "robust":
+            return state
+        new = RobustWeights(self.weights.channels, self.weights.width, self.weights.span)
+        new = new.to(self.weights.amplitude)
+        return {**state, **{f"{prefix}weights.{k}": v for k, v in new.state_dict().items()}}

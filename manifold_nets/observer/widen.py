@@ -1,0 +1,78 @@
+"""Fine-tuning from an older observer (``train.init_from``): its weights into one with more pieces.
+
+:func:`widen_state` takes the ``state_dict`` and signature of a trained observer and returns a
+``state_dict`` for ``observer``, which then starts out computing what the trained one does:
+
+* a feature the trained observer did not read gets zero input weights in the core's first layer
+  (a :class:`~manifold_nets.cores.GRUCore`), wherever it sits in the list;
+* every other piece says how it widens (:meth:`Piece.widen`): learned robust weights start as the
+  identity, a gain head's ``K`` at zero, an output scale rescales the head; pieces without
+  weights (a centring, a step decay, their settings) load across any settings.
+
+What cannot be widened (another group, measurement, core type or size, a feature the trained
+observer read but this one does not) raises ``ValueError`` naming it.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["widen_state"]
+
+
+def _same(what: str, old, new) -> None:
+    if old != new:
+        raise ValueError(f"{what} differs: checkpoint {old!r}, model {new!r}")
+
+
+def widen_state(observer, state: dict, found: dict) -> dict:
+    """``state`` (of an observer whose signature is ``found``) widened for ``observer``."""
+    own = observer.signature()
+    for key in ("group", "update"):
+        _same(key, found.get(key), own[key])
+    fm, om = dict(found.get("measurement", {})), dict(own["measurement"])
+    for key in ("dim", "input_dim", "factors"):
+        _same(f"measurement.{key}", fm.get(key), om.get(key))
+    fc, oc = found.get("core", {}), own["core"]
+    for key in set(fc) | set(oc):
+        if key not in ("input_size", "output_size"):
+            _same(f"core.{key}", fc.get(key), oc.get(key))
+    state = _widen_features(observer, dict(state), list(found.get("features", [])))
+    pieces = observer.pieces()
+    state = pieces["measurement"].widen(state, "measurement.", fm)
+    state = pieces["prior"].widen(state, "prior.", found.get("prior"))
+    state = pieces["head"].widen(state, "head.", found.get("head"))
+    old_scales = {s.get("type"): s for s in found.get("scales", [])}
+    for i, scale in enumerate(observer.scales):
+        state = scale.widen(state, f"scales.{i}.", old_scales.get(scale.name))
+    return state
+
+
+def _widen_features(observer, state: dict, old: list[dict]) -> dict:
+    """Zero input columns for each feature ``observer`` reads that ``old`` did not."""
+    new = [f.signature() for f in observer.features]
+    inserted, j = [], 0
+    at = 0
+    for f, sig in zip(observer.features, new):
+        if j < len(old) and old[j] == sig:
+            j += 1
+        else:
+            inserted.append((at, f.width, sig["type"]))
+        at += f.width
+    if j != len(old):
+        raise ValueError(
+            f"the checkpoint's features {[o.get('type') for o in old]} are not all among this "
+            f"observer's {[s['type'] for s in new]}, in order; only features can be added."
+        )
+    if not inserted:
+        return state
+    key = "core.gru.weight_ih_l0"
+    w = state.get(key)
+    if w is None or w.dim() != 2:
+        raise ValueError(
+            f"features {[t for _, _, t in inserted]} can be added only to a GRU core (core.gru)."
+        )
+    for at, width, _ in inserted:  # in order: each offset is in the widened layout
+        zeros = torch.zeros((w.shape[0], width), dtype=w.dtype, device=w.device)
+        w = torch.cat([w[:, :at], zeros, w[:, at:]], dim=1)
+    return {**state, key: w}
