@@ -195,8 +195,14 @@ def load_state(model: torch.nn.Module, ckpt: dict, path: str | os.PathLike) -> N
 
 
 def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:
-    """A checkpoint file from a file path or a run folder (``<dir>/checkpoints/<name>``)."""
-    p = Path(path)
+    """A checkpoint file from a file path, a run folder (``<dir>/checkpoints/<name>``) or a zoo
+    entry (``zoo:rigid_body/nominal``, :func:`manifold_nets.plugins.locate`)."""
+    from .plugins import locate
+
+    try:
+        p = locate(path)
+    except ValueError as err:
+        raise CheckpointError(str(err)) from None
     if p.is_dir():
         for cand in (p / "checkpoints" / name, p / name):
             if cand.is_file():

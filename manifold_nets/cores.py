@@ -20,7 +20,7 @@ __all__ = ["CORES", "Hidden", "RecurrentCore", "GRUCore"]
 
 #: Every imported :class:`RecurrentCore` subclass by ``module.qualname``: what a file's
 #: ``model.core`` may name (:mod:`manifold_nets.registry`).
-CORES = Registry("RecurrentCore", "manifold_nets.RecurrentCore")
+CORES = Registry("RecurrentCore", "manifold_nets.RecurrentCore", plugins="manifold_nets.cores")
 
 #: A core's hidden state: a tuple of tensors whose first dimension is the batch.
 Hidden = tuple[torch.Tensor, ...]

@@ -4,10 +4,10 @@
 ``config`` entry of a checkpoint), rebuilds the system and the observer from it and loads the
 weights::
 
-    import manifold_nets_examples.rigid_body            # registers the system the run was trained on
     from manifold_nets import load_observer
 
     observer, system, config = load_observer("outputs/default/<run id>")
+    observer, system, config = load_observer("zoo:rigid_body/nominal")     # a zoo entry
 
 A file from elsewhere is data, not code. What it may make happen:
 
@@ -15,7 +15,8 @@ A file from elsewhere is data, not code. What it may make happen:
   ``torch.load(weights_only=True)``; it must be plain data (mappings, lists, numbers, strings),
   without omegaconf interpolations (``${...}``; a resolved config has none);
 * ``system._target_`` is only *looked up* among the :class:`~manifold_nets.system.System`
-  subclasses the program has imported (:data:`manifold_nets.system.SYSTEMS`); the class is called
+  subclasses the program has imported or the installed packages declare
+  (:data:`manifold_nets.system.SYSTEMS`, :mod:`manifold_nets.plugins`); the class is called
   with the other keys as keyword arguments, which must be plain values (no nested ``_target_``,
   no other ``_``-keys of hydra's instantiate);
 * ``model.core`` is ``gru`` or an imported :class:`~manifold_nets.cores.RecurrentCore` subclass
@@ -44,6 +45,7 @@ from .builders import build_observer
 from .checkpoint import load_checkpoint, load_state, observer_state, resolve_checkpoint
 from .config import RunConfig
 from .observer import ResidualObserver
+from .plugins import locate
 from .system import SYSTEMS, System
 
 __all__ = ["LoadedObserver", "ArtefactError", "load_observer", "build_system_safely"]
@@ -156,10 +158,15 @@ def load_observer(
     ``checkpoints/best.pt``) or a checkpoint file (its ``config`` entry); see the module
     docstring for what is checked and what never runs.
 
-    The system class (``system._target_``) and a core other than ``gru`` must have been imported
-    by the program: import the module that defines them first.
+    ``path`` may be a zoo entry, ``zoo:rigid_body/nominal``. The system class
+    (``system._target_``) and a core other than ``gru`` must have been imported by the program or
+    be declared by an installed package (:mod:`manifold_nets.plugins`); the project's own example
+    systems are.
     """
-    path = Path(path)
+    try:
+        path = locate(path)
+    except ValueError as err:
+        raise ArtefactError(str(err)) from None
     raw, ckpt_file, ckpt = _read_config(path)
     where = str(path / "config.yaml" if path.is_dir() and ckpt is None else ckpt_file)
     if not isinstance(raw, dict) or "system" not in raw:

@@ -34,10 +34,12 @@ class Registry:
     Args:
         kind: what the classes are (``"System"``), for messages.
         base: the base class's dotted path, for messages (``"manifold_nets.System"``).
+        plugins: the entry-point group whose modules are imported on a miss
+            (:func:`manifold_nets.plugins.load_plugins`), e.g. ``"manifold_nets.systems"``.
     """
 
-    def __init__(self, kind: str, base: str):
-        self.kind, self.base = kind, base
+    def __init__(self, kind: str, base: str, plugins: str | None = None):
+        self.kind, self.base, self.plugins = kind, base, plugins
         self._classes: dict[str, type] = {}
 
     def add(self, cls: type) -> type:
@@ -65,12 +67,19 @@ class Registry:
                 f"{where} must name a {self.kind} class by its dotted path, got {path!r}."
             )
         cls = self._classes.get(path)
+        if cls is None and self.plugins:  # what installed packages declare (manifold_nets.plugins)
+            from .plugins import load_plugins
+
+            load_plugins(self.plugins)
+            cls = self._classes.get(path)
         if cls is None:
             known = ", ".join(self.names()) or "none"
             raise UnknownTargetError(
                 f"{where} names {path!r}, which is not a registered {self.kind} (a subclass of "
                 f"{self.base} whose module has been imported). If it is yours, import the module "
-                f"that defines it first; manifold_nets never imports a module a file names. "
+                f"that defines it first, or declare it as an entry point of your package "
+                f"({self.plugins or 'none'}; docs/your_own_project.md); manifold_nets never "
+                f"imports a module a file names. "
                 f"Registered: {known}."
             )
         return cls

@@ -62,7 +62,7 @@ __all__ = ["SYSTEMS", "System", "check_last_dim", "check_number", "check_simulat
 
 #: Every imported :class:`System` subclass by ``module.qualname``: what a run folder's
 #: ``system._target_`` may name (:mod:`manifold_nets.registry`).
-SYSTEMS = Registry("System", "manifold_nets.System")
+SYSTEMS = Registry("System", "manifold_nets.System", plugins="manifold_nets.systems")
 
 _DTYPE = torch.float64
 _MEASURE_CHUNK = 1 << 17  # (sequence, step) pairs measured at once: small temporaries are faster

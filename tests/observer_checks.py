@@ -1,5 +1,5 @@
 """Shared test helpers for observer options: rollout = online = pieces = exported step; a tiny train
-command run loaded back; a small SO(3) dataset."""
+command run loaded back; a small SO(3) dataset; a random output layer for an untrained observer."""
 
 from __future__ import annotations
 
@@ -9,6 +9,24 @@ import torch
 
 from groups import SO3
 from manifold_nets.data import TrajectoryDataset
+
+
+def randomise_head(obs, seed: int | None = None, scale: float = 1.0) -> None:
+    """Gives ``obs.core.head`` (a :class:`~manifold_nets.cores.GRUCore`'s output layer) random
+    weights, ``nn.Linear``'s own initialisation times ``scale``, drawn under ``seed`` when given
+    (else from the global generator). A core the observer makes starts with that layer at zero
+    (an untrained observer holds still); a test that needs an untrained observer that moves
+    calls this."""
+    head = obs.core.head
+    with torch.no_grad():
+        if seed is None:
+            head.reset_parameters()
+        else:
+            with torch.random.fork_rng(devices=[]):
+                torch.manual_seed(seed)
+                head.reset_parameters()
+        head.weight.mul_(scale)
+        head.bias.mul_(scale)
 
 
 def assert_online_matches_rollout(obs, measurements: torch.Tensor, atol: float = 1e-12):

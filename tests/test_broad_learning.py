@@ -174,9 +174,9 @@ def test_the_compare_command_puts_the_learned_row_beside_the_filters(tiny_run, t
 
 
 def test_the_shipped_observer_loads_and_tracks_the_excerpt(trial, tmp_path):
-    """examples/broad/pretrained (docs/real_data.md): loads without executing anything, and on
+    """The zoo's broad/attitude (docs/real_data.md): loads without executing anything, and on
     the excerpt (from a training trial, started mid-motion from TRIAD) stays within degrees."""
-    shipped = Path(__file__).parents[1] / "examples" / "broad" / "pretrained"
+    shipped = Path(__file__).parents[1] / "examples" / "broad" / "zoo" / "attitude"
     res = apply_cmd.apply_observer(shipped, FIXTURE, tmp_path / "q.npy")
     assert res["quaternions"].shape == (2000, 4)
     assert res["rmse"]["total"] < 10.0, res["rmse"]

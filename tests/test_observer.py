@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import shutil
 
 import pytest
@@ -9,7 +10,9 @@ import torch
 
 from groups import SE3, SO3, Euclidean, Product
 from manifold_nets.losses import embedding_mse
-from manifold_nets import GRUCore, ObserverInputs, RecurrentCore, ResidualObserver
+from manifold_nets import GRUCore, RecurrentCore, ResidualObserver
+from manifold_nets.observer import Embedding, GroupUpdate, Innovation, Measurement, Readings
+from tests.observer_checks import randomise_head
 
 GROUPS = [
     pytest.param(SO3(), id="SO3"),
@@ -21,9 +24,27 @@ GROUPS = [
 RIGID = Product(SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "b_omega", "b_v"))
 
 
-def _obs(group, meas=5, hidden=8, layers=2, seed=0, **kw):
+def _obs(group, meas=5, hidden=8, layers=2, seed=0, update=None, state_dtype=torch.float64,
+         **kw):
+    """A small GRU observer; its output layer random (``nn.Linear``'s initialisation), as an
+    untrained observer's was before a core made by the observer started at zero."""
+    meas = kw.pop("measurement", meas)
     torch.manual_seed(seed)
-    return ResidualObserver(group, meas, hidden_size=hidden, num_layers=layers, **kw)
+    obs = ResidualObserver(
+        group, meas, functools.partial(GRUCore, hidden_size=hidden, num_layers=layers),
+        update=GroupUpdate(update, state_dtype=state_dtype), **kw,
+    )
+    randomise_head(obs)  # from the seeded generator: same seed, same observer
+    return obs
+
+
+def _measured(meas, factors, drop=()):
+    """The measurement and features of innovation inputs on ``factors`` (``drop``: the factors
+    the core reads only through their innovation)."""
+    return dict(
+        measurement=Measurement(meas, factors=factors),
+        features=[Embedding(drop=drop), Readings(drop=drop), Innovation()],
+    )
 
 
 def _amplify(obs: ResidualObserver, scale: float = 3.0) -> None:
@@ -119,8 +140,8 @@ def test_update_rules_residual_and_absolute():
     g = Product(SO3(), Euclidean(3), Euclidean(2), names=("R", "p", "b"))
     v = torch.tensor([0.1, -0.2, 0.05, 1.0, 2.0, 3.0, -4.0, 5.0], dtype=torch.float64)
     core = ConstantCore(g.embedding_dim + 2, g.tangent_dim, v)
-    obs = ResidualObserver(g, 2, core=core, update={"b": "absolute"})
-    assert obs.rules == ("residual", "residual", "absolute")
+    obs = ResidualObserver(g, 2, core=core, update=GroupUpdate({"b": "absolute"}))
+    assert obs.update.rules == ("residual", "residual", "absolute")
     est = obs(torch.zeros(1, 4, 2, dtype=torch.float64))
     for k in range(5):
         r, p, b = g.split(est[0, k])
@@ -133,7 +154,9 @@ def test_update_rules_residual_and_absolute():
 
 def test_absolute_on_a_non_vector_factor_sets_exp():
     v = torch.tensor([0.3, -0.1, 0.2], dtype=torch.float64)
-    obs = ResidualObserver(SO3(), 1, core=ConstantCore(10, 3, v), update={"x": "absolute"})
+    obs = ResidualObserver(
+        SO3(), 1, core=ConstantCore(10, 3, v), update=GroupUpdate({"x": "absolute"})
+    )
     est = obs(torch.zeros(2, 3, 1, dtype=torch.float64))
     torch.testing.assert_close(est[:, 1:], SO3().exp(v).expand(2, 3, 3, 3))
 
@@ -153,7 +176,7 @@ def test_step_api_matches_forward_and_continues():
 
 
 def test_inputs_are_read():
-    obs = _obs(SO3(), meas=2, input_dim=3)
+    obs = _obs(SO3(), meas=Measurement(2, input_dim=3))
     y = torch.randn(2, 6, 2)
     u = torch.randn(2, 6, 3)
     with torch.no_grad():
@@ -175,7 +198,8 @@ def test_signature_names_the_model():
         "num_layers": 2,
     }
     assert sig["update"] == ["residual", "residual", "residual", "absolute"]
-    assert sig["innovation"] == {} and sig["relative_only"] == []
+    assert sig["measurement"]["factors"] == {}
+    assert sig["features"] == [{"type": "embedding"}, {"type": "readings"}]  # nothing dropped
 
 
 @pytest.mark.parametrize(
@@ -197,14 +221,14 @@ def test_bad_input_is_rejected_clearly(make, match):
 
 def test_bad_construction_is_rejected_clearly():
     with pytest.raises(ValueError, match="not one of"):
-        ResidualObserver(RIGID, 18, update={"R": "additive"})
+        ResidualObserver(RIGID, 18, update=GroupUpdate({"R": "additive"}))
     with pytest.raises(ValueError, match="does not have"):
-        ResidualObserver(RIGID, 18, update={"bias": "absolute"})
+        ResidualObserver(RIGID, 18, update=GroupUpdate({"bias": "absolute"}))
     with pytest.raises(ValueError, match="needs"):
         ResidualObserver(RIGID, 18, core=GRUCore(30, 12, 4, 1))
     with pytest.raises(TypeError, match="LieGroup"):
         ResidualObserver("SO3", 18)
-    with pytest.raises(ValueError, match="measurement_dim"):
+    with pytest.raises(ValueError, match="Measurement: dim"):  # measurement_dim, now Measurement.dim
         ResidualObserver(SO3(), 0)
 
 
@@ -229,8 +253,7 @@ def test_innovation_reads_log_of_estimate_to_measured_factor():
     g = Product(SO3(), Euclidean(3), names=("R", "p"))
     meas = 14  # y = (vec R^m, p^m, two more numbers)
     core = RecordingCore(g.embedding_dim + meas + 6, g.tangent_dim)
-    inputs = ObserverInputs({"R": (0, 9), "p": (9, 12)})
-    obs = ResidualObserver(g, meas, core=core, inputs=inputs)
+    obs = ResidualObserver(g, core=core, **_measured(meas, {"R": (0, 9), "p": (9, 12)}))
     rm = SO3().random((2, 3), generator=torch.Generator().manual_seed(0), dtype=torch.float64)
     pm = torch.randn(2, 3, 3, dtype=torch.float64)
     y = torch.cat([rm.flatten(-2), pm, torch.randn(2, 3, 2, dtype=torch.float64)], -1)
@@ -238,11 +261,11 @@ def test_innovation_reads_log_of_estimate_to_measured_factor():
     for k, inp in enumerate(core.seen):
         torch.testing.assert_close(inp[:, 12 + meas : 15 + meas], SO3().log(rm[:, k]).float())
         torch.testing.assert_close(inp[:, 15 + meas :], pm[:, k].float())
-    assert obs.signature()["innovation"] == {"R": [0, 9], "p": [9, 12]}
+    assert obs.signature()["measurement"]["factors"] == {"R": [0, 9], "p": [9, 12]}
 
 
 def test_innovation_observer_on_group_with_gradients():
-    obs = _obs(RIGID, meas=18, inputs=ObserverInputs({"R": (0, 9)}))
+    obs = _obs(RIGID, **_measured(18, {"R": (0, 9)}))
     assert obs.core.input_size == 18 + 18 + 3
     y = torch.cat(
         [
@@ -265,11 +288,11 @@ def test_innovation_observer_on_group_with_gradients():
 
 def test_bad_innovation_is_rejected():
     with pytest.raises(ValueError, match="does not have"):
-        ResidualObserver(RIGID, 18, inputs=ObserverInputs({"q": (0, 9)}))
+        ResidualObserver(RIGID, **_measured(18, {"q": (0, 9)}))
     with pytest.raises(ValueError, match="embedding_dim = 9"):
-        ResidualObserver(RIGID, 18, inputs=ObserverInputs({"R": (0, 8)}))
+        ResidualObserver(RIGID, **_measured(18, {"R": (0, 8)}))
     with pytest.raises(ValueError, match="span of y"):
-        ResidualObserver(RIGID, 18, inputs=ObserverInputs({"p": (16, 19)}))
+        ResidualObserver(RIGID, **_measured(18, {"p": (16, 19)}))
 
 
 @pytest.mark.parametrize("group", GROUPS)
@@ -280,17 +303,15 @@ def test_internal_embed_and_update_match_the_group(group):
     x = group.random((4,), generator=g, dtype=torch.float64)
     v = torch.randn(4, group.tangent_dim, generator=g, dtype=torch.float64)
     flat = x.reshape(4, -1)
-    torch.testing.assert_close(obs._embed(flat), group.embed(x), rtol=0, atol=0)
-    torch.testing.assert_close(obs._update(flat, v), group.rplus(x, v).reshape(4, -1))
+    torch.testing.assert_close(obs.update.embed(flat), group.embed(x), rtol=0, atol=0)
+    torch.testing.assert_close(obs.update(flat, v), group.rplus(x, v).reshape(4, -1))
 
 
 def test_relative_only_leaves_the_absolute_factor_out_of_the_core_input():
     g = Product(SO3(), Euclidean(3), names=("R", "p"))
     meas = 14  # y = (vec R^m, p^m, two more numbers)
     core = RecordingCore(9 + 11 + 6, g.tangent_dim)  # embed without p, y without p^m
-    obs = ResidualObserver(
-        g, meas, core=core, inputs=ObserverInputs({"R": (0, 9), "p": (9, 12)}, ["p"])
-    )
+    obs = ResidualObserver(g, core=core, **_measured(meas, {"R": (0, 9), "p": (9, 12)}, ["p"]))
     gen = torch.Generator().manual_seed(1)
     rm = SO3().random((2, 3), generator=gen, dtype=torch.float64)
     pm = torch.randn(2, 3, 3, generator=gen, dtype=torch.float64)
@@ -300,15 +321,17 @@ def test_relative_only_leaves_the_absolute_factor_out_of_the_core_input():
         torch.testing.assert_close(inp[:, 9:18], rm[:, k].flatten(-2).float())  # y's vec R^m
         torch.testing.assert_close(inp[:, 18:20], rest[:, k].float())  # p^m is left out
         torch.testing.assert_close(inp[:, 23:], pm[:, k].float())  # p^m - phat (phat = 0)
-    assert obs.signature()["relative_only"] == ["p"]
-    plain = ResidualObserver(g, meas, inputs=ObserverInputs({"p": (9, 12)}))
-    assert plain.signature()["relative_only"] == []
+    assert obs.signature()["features"][:2] == [
+        {"type": "embedding", "drop": ["p"]}, {"type": "readings", "drop": ["p"]}
+    ]
+    plain = ResidualObserver(g, **_measured(meas, {"p": (9, 12)}))
+    assert plain.signature()["features"][:2] == [{"type": "embedding"}, {"type": "readings"}]
 
 
 def test_relative_only_observer_is_invariant_to_translations():
     """Shifting every position (true and measured) by a constant shifts the estimates of p by
     it and leaves everything else unchanged: the core never reads an absolute position."""
-    obs = _obs(RIGID, meas=18, inputs=ObserverInputs({"R": (0, 9), "p": (9, 12)}, ["p"]))
+    obs = _obs(RIGID, **_measured(18, {"R": (0, 9), "p": (9, 12)}, ["p"]))
     _amplify(obs)
     gen = torch.Generator().manual_seed(2)
     y = torch.cat(
@@ -330,7 +353,7 @@ def test_relative_only_observer_is_invariant_to_translations():
     torch.testing.assert_close(b[..., :9], a[..., :9], rtol=0, atol=1e-12)
     torch.testing.assert_close(b[..., 12:], a[..., 12:], rtol=0, atol=1e-12)
     # without relative_only the same observer is not invariant
-    plain = _obs(RIGID, meas=18, inputs=ObserverInputs({"R": (0, 9), "p": (9, 12)}))
+    plain = _obs(RIGID, **_measured(18, {"R": (0, 9), "p": (9, 12)}))
     _amplify(plain)
     a = plain(y, state=start).detach()
     b2 = plain(y2, state=start._replace(estimate=moved)).detach()
@@ -344,14 +367,14 @@ def test_relative_only_observer_is_invariant_to_translations():
 
 def test_bad_relative_only_is_rejected():
     with pytest.raises(ValueError, match="does not have"):
-        ResidualObserver(RIGID, 18, inputs=ObserverInputs({"p": (9, 12)}, ["q"]))
-    with pytest.raises(ValueError, match="no innovation span"):
-        ResidualObserver(RIGID, 18, inputs=ObserverInputs({"p": (9, 12)}, ["R"]))
+        ResidualObserver(RIGID, **_measured(18, {"p": (9, 12)}, ["q"]))
+    with pytest.raises(ValueError, match="does not measure it"):  # R has no innovation span
+        ResidualObserver(RIGID, **_measured(18, {"p": (9, 12)}, ["R"]))
 
 
 @pytest.mark.skipif(shutil.which("g++") is None, reason="torch.compile on the CPU needs a C++ compiler")
 def test_compiled_step_gives_the_eager_losses_and_gradients():
-    kw = dict(meas=18, hidden=8, layers=1, inputs=ObserverInputs({"R": (0, 9), "p": (9, 12)}),
+    kw = dict(hidden=8, layers=1, **_measured(18, {"R": (0, 9), "p": (9, 12)}),
               update={"b_omega": "absolute", "b_v": "absolute"}, state_dtype=torch.float64)
     eager, compiled = _obs(RIGID, **kw), _obs(RIGID, **kw).compile_step()
     gen = torch.Generator().manual_seed(3)

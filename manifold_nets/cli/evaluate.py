@@ -42,7 +42,10 @@ log = logging.getLogger(__name__)
 
 
 def absolute(path: str) -> str:
-    """``path`` from the folder the command was launched in (hydra may have moved the cwd)."""
+    """``path`` from the folder the command was launched in (hydra may have moved the cwd); a zoo
+    entry (``zoo:...``) as it is."""
+    if str(path).startswith("zoo:"):
+        return str(path)
     try:
         from hydra.utils import to_absolute_path
 

@@ -89,7 +89,7 @@ def blocks_from_flat(model, prior: str = "none") -> dict | None:
     drop = g["relative_only"]
     features: list[dict] = [
         {"type": "embedding", **({"drop": drop} if drop else {})},
-        {"type": "readings", **({"drop": drop} if drop else {})},
+        {"type": "readings", **({"drop": list(drop)} if drop else {})},
     ]
     if measured:
         features.append({"type": "innovation"})

@@ -62,7 +62,10 @@ class ResidualObserver(nn.Module):
         measurement: a :class:`~manifold_nets.observer.measurement.Measurement` (sizes of ``y``
             and ``u``, the factors ``y`` measures), or the size of ``y`` (no input, none measured).
         core: a :class:`~manifold_nets.cores.RecurrentCore` from the features' width to the
-            head's output size; default a 512 x 2 :class:`~manifold_nets.cores.GRUCore` (the paper's).
+            head's output size, or a factory ``(input_size, output_size) -> core`` (e.g.
+            ``functools.partial(GRUCore, hidden_size=128)``); default a 512 x 2
+            :class:`~manifold_nets.cores.GRUCore` (the paper's). A core made here starts where
+            the head says (:meth:`~manifold_nets.observer.heads.Head.reset`).
         update: a :class:`~manifold_nets.observer.update.GroupUpdate` (per-factor rules, the
             state dtype); default residual everywhere, float64.
         prior: a :class:`~manifold_nets.observer.priors.Prior`; default none (the paper's).
@@ -116,9 +119,9 @@ class ResidualObserver(nn.Module):
     def _core(self, core: RecurrentCore | None) -> RecurrentCore:
         width = sum(f.width for f in self.features)
         out = self.head.output_size(self.group.tangent_dim, self.measurement.innovation_dim)
-        if core is None:
-            core = GRUCore(width, out)
-            self.head.reset(core)
+        if core is None or (callable(core) and not isinstance(core, nn.Module)):
+            core = (GRUCore if core is None else core)(width, out)  # a core made here starts
+            self.head.reset(core)  # where the head says (an untrained observer holds still)
         if not isinstance(core, RecurrentCore):
             raise TypeError(f"core must be a RecurrentCore, got {type(core).__name__}.")
         if core.input_size != width or core.output_size != out:
