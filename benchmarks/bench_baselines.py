@@ -25,11 +25,15 @@ so3 = SO3()
 rows = []
 for sigma in (0.1, 0.2, 0.3, 0.4, 0.5):
     data = system.simulate(N, T, sigma, torch.Generator().manual_seed(1))
-    t0 = time.perf_counter(); gains, _ = tune_complementary_gains(system, sigma); tune_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    gains, _ = tune_complementary_gains(system, sigma)
+    tune_s = time.perf_counter() - t0
     methods = [RawMeasurement(system), DeadReckoning(system), ComplementaryFilter(system, gains),
                RigidBodyEKF(system, sigma), RigidBodyEKF(system, sigma, init_steps=0)]
     for est in methods:
-        t0 = time.perf_counter(); x = est.estimate(data); sec = time.perf_counter() - t0
+        t0 = time.perf_counter()
+        x = est.estimate(data)
+        sec = time.perf_counter() - t0
         m = system.metrics(x, data)
         R, Rt = x[:, :, :9].unflatten(-1, (3, 3)), data.states[:, :, :9].unflatten(-1, (3, 3))
         ang = so3.distance(R, Rt)
@@ -41,7 +45,8 @@ for sigma in (0.1, 0.2, 0.3, 0.4, 0.5):
         row["diverged"] = int((m["R"][:, 500:].mean(1) > 1.0).sum())
         row["ms/step"] = 1e3 * sec / T
         if isinstance(est, ComplementaryFilter):
-            row["gains"] = [gains.k_P, gains.k_I, gains.k_p, gains.k_b]; row["tune s"] = tune_s
+            row["gains"] = [gains.k_P, gains.k_I, gains.k_p, gains.k_b]
+            row["tune s"] = tune_s
         rows.append(row)
         print(json.dumps(row), flush=True)
 out = "benchmarks/results/baselines.json"

@@ -7,9 +7,10 @@ Run by hand from the repository root (not by CI)::
 
 The observer is the rigid body's of ``experiment=default`` (the config composed from
 ``configs/``): a 2x128 GRU, innovation inputs ``{R: [0, 9], p: [9, 12]}``, biases absolute,
-float32 network, float64 state, untrained (the speed does not depend on the weights), fed a
-simulated noisy stream. One torch thread, ``torch.inference_mode``. Variants, each one step at
-batch 1, timed step by step:
+float32 network, float64 state, untrained (the speed does not depend on the weights; its output
+layer, which starts at zero in a core the observer makes, gets random weights, so that the
+estimate moves and the variants' agreement means something), fed a simulated noisy stream. One
+torch thread, ``torch.inference_mode``. Variants, each one step at batch 1, timed step by step:
 
 * ``eager observer.step``: the checked step (:meth:`ResidualObserver.step`), the reference;
 * ``eager OnlineStep``: the same step without checks (``observer.online_step_module()``);
@@ -60,6 +61,7 @@ def _observer():
     system = build_system_safely(dict(cfg.system))
     torch.manual_seed(0)
     obs = build_observer(system.group, system.measurement_dim, system.input_dim, cfg.model)
+    obs.core.head.reset_parameters()  # random, as the other weights: the estimate moves
     return obs.eval(), system, cfg.model
 
 
@@ -190,7 +192,7 @@ def main(argv=None) -> int:
         f"{load1:.1f} at the end (a shared machine: compare the ratios, not the times).",
         "",
         f"The rigid body's observer of `experiment=default`: a {model.num_layers}x"
-        f"{model.hidden_size} GRU, innovation {dict(model.innovation)}, updates "
+        f"{model.hidden_size} GRU, innovation {obs.signature()['measurement']['factors']}, updates "
         f"{dict(model.updates)}, {model.net_dtype} network, {model.state_dtype} state; "
         f"{args.steps} steps per round, {args.rounds - 1} rounds counted (the first is a warm-up), "
         "variants interleaved; median and 10th percentile of the per-step times.",

@@ -22,7 +22,7 @@ from omegaconf import DictConfig, ListConfig, OmegaConf
 from .config import DTYPES, MethodConfig, ModelConfig
 from .cores import CORES, GRUCore, RecurrentCore
 from .observer import GroupUpdate, ResidualObserver
-from .observer.legacy import blocks_from_flat, flat_keys_set
+from .observer.legacy import BLOCK_OF, blocks_from_flat, flat_keys_set
 from .observer.piece import piece_class
 from .relax import relax
 from .system import System
@@ -202,10 +202,12 @@ def model_blocks(model: ModelConfig | Any) -> dict[str, Any]:
     given = [k for k, v in new.items() if v not in (None, {}, [])]
     if flat is not None:
         if given:
+            where = "; ".join(f"model.{k} -> {BLOCK_OF.get(k, 'model.prior')}"
+                              for k in flat_keys_set(model) or ["prior"])
             raise ValueError(
-                f"the model config sets both the flat keys {flat_keys_set(model) or ['prior']} of "
-                f"the first format and the blocks {given}; write the blocks only: "
-                f"{_yaml(flat)}"
+                f"the model config is written in blocks ({given}) but also sets flat keys of the "
+                f"first format; set them in their blocks instead ({where}), e.g. "
+                "'++model.head={type: centred, c: 0.7}'."
             )
         warnings.warn(
             f"the model config's flat keys {flat_keys_set(model) or ['prior']} are deprecated; "

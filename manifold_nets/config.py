@@ -246,6 +246,9 @@ class EvalConfig:
     test_split: bool = True
     #: Show progress bars (sequences done, a filter's steps) on a terminal, for long evaluations.
     progress: bool = True
+    #: Reference methods evaluated on the same sets, their rows in the same table (not in the
+    #: objective), e.g. ``[raw, ekf]``: the raw measurement and the model-based EKF.
+    baselines: list[str] = field(default_factory=list)
 
 
 @dataclass

@@ -89,3 +89,83 @@ def test_no_function_is_longer_than_80_lines(folder):
                 if length > 80:
                     long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({length})")
     assert long == []
+
+
+def _runtime_imports(path: Path) -> set[str]:
+    """:func:`_imports` less those under ``if TYPE_CHECKING:`` (not imports at run time)."""
+    tree = ast.parse(path.read_text())
+    typing_only = set()
+    for node in ast.walk(tree):
+        if isinstance(node, ast.If) and "TYPE_CHECKING" in ast.unparse(node.test):
+            typing_only.update(id(n) for n in ast.walk(node))
+    keep = [n for n in ast.walk(tree) if isinstance(n, (ast.Import, ast.ImportFrom))
+            and id(n) not in typing_only]
+    module = ast.Module(body=keep, type_ignores=[])
+    tmp = path.with_name(path.name)  # the same package for relative imports
+    out = set()
+    for node in module.body:
+        single = ast.Module(body=[node], type_ignores=[])
+        out |= _imports_of(tmp, single)
+    return out
+
+
+def _imports_of(path: Path, tree: ast.Module) -> set[str]:
+    package = ".".join(path.relative_to(ROOT).with_suffix("").parts[:-1])
+    if path.name == "__init__.py":
+        package = ".".join(path.relative_to(ROOT).parts[:-1])
+    out = set()
+    for node in tree.body:
+        if isinstance(node, ast.Import):
+            out.update(alias.name for alias in node.names)
+        elif isinstance(node, ast.ImportFrom):
+            base = package.split(".")[: len(package.split(".")) - node.level + 1] if node.level else []
+            name = ".".join(base + ([node.module] if node.module else []))
+            out.add(name)
+            out.update(f"{name}.{alias.name}" for alias in node.names)
+    return out
+
+
+def test_the_library_has_no_import_cycle():
+    """Module by module (a package is its ``__init__``), every import at run time, lazy ones
+    too: ``cli.train`` and ``cli.evaluate`` share ``cli.tasks``, the observer knows neither the
+    checkpoint format nor deployment."""
+    modules = {}
+    for path in _modules("manifold_nets"):
+        parts = path.relative_to(ROOT).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        modules[name] = path
+    graph = {
+        name: {m for m in _runtime_imports(path) if m in modules and m != name
+               and not name.startswith(m + ".")}  # a module's own package __init__ runs first
+        for name, path in modules.items()
+    }
+    cycles = []
+
+    def visit(node, stack, seen):
+        for nxt in graph[node]:
+            if nxt in stack:
+                cycles.append(" -> ".join(stack[stack.index(nxt):] + [nxt]))
+            elif nxt not in seen:
+                seen.add(nxt)
+                visit(nxt, [*stack, nxt], seen)
+
+    for start in graph:
+        visit(start, [start], {start})
+    assert not cycles, sorted(set(cycles))[:10]
+
+
+@pytest.mark.parametrize("folder", ["groups", "manifold_nets", "examples"])
+def test_no_module_is_longer_than_500_lines(folder):
+    long = [f"{p.relative_to(ROOT)} ({n})" for p in _modules(folder)
+            if (n := len(p.read_text().splitlines())) > 500]
+    assert long == []
+
+
+def test_the_observer_is_one_short_class():
+    import inspect
+
+    from manifold_nets.observer import ResidualObserver, observer
+
+    params = [p for p in inspect.signature(ResidualObserver.__init__).parameters if p != "self"]
+    assert len(params) <= 8, params
+    assert len(inspect.getsource(observer).splitlines()) <= 300

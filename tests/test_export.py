@@ -8,6 +8,7 @@ the only differences are float32 roundings of the network, far below 1e-6 over 5
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 
 import pytest
@@ -15,24 +16,28 @@ import torch
 
 from manifold_nets_examples.rigid_body import RigidBody
 from groups import SO3, Euclidean, Product
-from manifold_nets import ObserverInputs, ResidualObserver, export_observer
+from manifold_nets import GRUCore, ResidualObserver, export_observer
 from manifold_nets.builders import build_observer
 from manifold_nets.config import ModelConfig
 from manifold_nets.deploy import OnlineStep, export_onnx, load_exported_step
+from manifold_nets.observer import Embedding, Innovation, Measurement, Readings
+from tests.observer_checks import randomise_head
 
 STEPS = 50
 
 
 def _rigid_body_observer(state_dtype: str = "float64") -> tuple[ResidualObserver, torch.Tensor]:
     """The rigid body's observer of ``experiment=default`` (innovation ``R: [0, 9], p: [9, 12]``,
-    biases absolute; a 2x32 GRU to stay fast) and a noisy stream ``(STEPS, 1, 18)`` float64."""
+    biases absolute; a 2x32 GRU to stay fast; its output layer random, so that it moves) and a
+    noisy stream ``(STEPS, 1, 18)`` float64."""
     system = RigidBody()
     model = ModelConfig(
         hidden_size=32, num_layers=2, updates={"b_omega": "absolute", "b_v": "absolute"},
-        innovation={"R": [0, 9], "p": [9, 12]}, state_dtype=state_dtype,
+        measurement={"factors": {"R": [0, 9], "p": [9, 12]}}, state_dtype=state_dtype,
     )
     torch.manual_seed(0)
     obs = build_observer(system.group, system.measurement_dim, system.input_dim, model).eval()
+    randomise_head(obs, seed=0)
     data = system.simulate(1, STEPS, 0.1, torch.Generator().manual_seed(1))
     return obs, data.measurements.transpose(0, 1).contiguous()
 
@@ -87,9 +92,13 @@ def test_the_exported_step_saved_and_loaded_equals_the_eager_step(tmp_path):
 
 def test_inputs_and_relative_only_factors_export_too(tmp_path):
     group = Product(SO3(), Euclidean(3), names=("R", "p"))
-    inputs = ObserverInputs({"R": (0, 9), "p": (9, 12)}, relative_only=("p",))
     torch.manual_seed(0)
-    obs = ResidualObserver(group, 12, 3, inputs=inputs, hidden_size=16, num_layers=1).eval()
+    obs = ResidualObserver(
+        group, Measurement(12, 3, factors={"R": (0, 9), "p": (9, 12)}),
+        functools.partial(GRUCore, hidden_size=16, num_layers=1),
+        features=[Embedding(drop=["p"]), Readings(drop=["p"]), Innovation()],
+    ).eval()
+    randomise_head(obs, seed=0)
     g = torch.Generator().manual_seed(0)
     ys = torch.cat(
         (SO3().random((20, 2), generator=g, dtype=torch.float64).flatten(-2),

@@ -4,6 +4,7 @@ others; for a group that is not a product it is ``log_mse``."""
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 
@@ -11,7 +12,7 @@ import pytest
 import torch
 
 from groups import SE3, SO3, Euclidean, Product
-from manifold_nets import TrainSettings
+from manifold_nets import GRUCore, TrainSettings
 from manifold_nets.losses import (
     LOG_MSE_EPS,
     embedding_factor_log_mse,
@@ -131,7 +132,7 @@ def test_it_is_a_training_loss():
 def test_fit_trains_and_validates_on_the_factor_log_loss(tmp_path, tbptt):
     train, val = so3_walk(12, 12, 1), so3_walk(6, 12, 2)
     torch.manual_seed(0)
-    model = ResidualObserver(SO3(), 9, hidden_size=8, num_layers=1)
+    model = ResidualObserver(SO3(), 9, functools.partial(GRUCore, hidden_size=8, num_layers=1))
     before = validation_loss(model, val, loss="factor_log_mse")
     assert before == pytest.approx(validation_loss(model, val, loss="log_mse"), rel=1e-6)
     settings = TrainSettings(

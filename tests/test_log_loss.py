@@ -3,6 +3,7 @@ weigh as much as the noisy ones (the paper's ``L`` is dominated by the noisiest)
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 
@@ -10,7 +11,7 @@ import pytest
 import torch
 
 from groups import SO3
-from manifold_nets import TrainSettings
+from manifold_nets import GRUCore, TrainSettings
 from manifold_nets.losses import LOG_MSE_EPS, embedding_log_mse, embedding_mse, sequence_mse
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.training import LOSSES, check_settings, fit, validation_loss
@@ -109,7 +110,7 @@ def test_an_unknown_loss_is_refused_naming_the_choices():
 def test_fit_trains_and_validates_on_the_log_loss(tmp_path, tbptt):
     train, val = so3_walk(12, 12, 1), so3_walk(6, 12, 2)
     torch.manual_seed(0)
-    model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
+    model = ResidualObserver(G, 9, functools.partial(GRUCore, hidden_size=8, num_layers=1))
     before = validation_loss(model, val, loss="log_mse")
     res = fit(
         model, train, val,

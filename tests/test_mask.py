@@ -6,11 +6,13 @@ a placeholder state and ``mask == False``; they must never act as ground truth.
 
 from __future__ import annotations
 
+import functools
+
 import pytest
 import torch
 
 from groups import SO3
-from manifold_nets import TrainSettings
+from manifold_nets import GRUCore, TrainSettings
 from manifold_nets.data import (
     DatasetError,
     TrajectoryDataset,
@@ -85,7 +87,7 @@ def test_masked_steps_do_not_reach_the_loss():
 def test_fit_trains_through_masked_data_from_a_given_start(tmp_path):
     train, val = make(12, seed=1), make(4, seed=2)
     torch.manual_seed(0)
-    model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
+    model = ResidualObserver(G, 9, functools.partial(GRUCore, hidden_size=8, num_layers=1))
     sizes = []
 
     def start(batch):  # every rollout starts at the true x_0 (a measured start in real use)
@@ -107,7 +109,7 @@ def test_fit_trains_through_masked_data_from_a_given_start(tmp_path):
 
 def _fit(tmp_path, name, **settings):
     torch.manual_seed(0)
-    model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
+    model = ResidualObserver(G, 9, functools.partial(GRUCore, hidden_size=8, num_layers=1))
     res = fit(
         model, make(12, t=12, seed=1), make(4, t=12, seed=2),
         TrainSettings(**{"epochs": 2, "batch_size": 4, "lr": 1e-2, "progress": False, **settings}),
@@ -127,7 +129,7 @@ def test_truncated_bptt_of_the_whole_length_is_plain_bptt(tmp_path):
 def test_truncated_bptt_steps_per_piece_and_carries_the_state(tmp_path):
     steps = []
     torch.manual_seed(0)
-    model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
+    model = ResidualObserver(G, 9, functools.partial(GRUCore, hidden_size=8, num_layers=1))
     calls = []
     model.register_forward_pre_hook(lambda m, args, kwargs: calls.append(kwargs.get("state")),
                                     with_kwargs=True)

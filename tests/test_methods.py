@@ -135,7 +135,7 @@ def _unconstrained(system, hidden=16, relaxed=True):
             num_layers=1,
             updates={"R": "absolute" if relaxed else "residual", "b_omega": "absolute",
                      "b_v": "absolute"},
-            innovation={"R": [0, 9], "p": [9, 12]},
+            measurement={"factors": {"R": [0, 9], "p": [9, 12]}},  # innovation read (features null)
             relax=["R"] if relaxed else [],
         )
     )

@@ -1,23 +1,34 @@
-"""The model prior (``model.prior=system``): ``System.predict`` moves the estimate before the
-learned update. Pinned: each shipped system's ``predict`` is its own dynamics with the
-bias-corrected readings; the observer's rollout, online step and exported step apply it; the
-gradient flows through it; the signature records it; bad settings say what is wrong."""
+"""The system prior (``SystemPrior(system)``, ``prior: {type: system}``): ``System.predict`` moves
+the estimate before the learned update. Pinned: each shipped system's ``predict`` is its own
+dynamics with the bias-corrected readings (its step with the compensated drive); the observer's
+rollout, online step and exported step apply it; the gradient flows through it; the signature
+records it; bad settings say what is wrong."""
 
 from __future__ import annotations
+
+import warnings
 
 import pytest
 import torch
 from omegaconf import OmegaConf
 
-from manifold_nets.builders import build_observer
+from manifold_nets.builders import build_observer, build_piece
 from manifold_nets.checkpoint import CheckpointError, check_signature
 from manifold_nets.config import ModelConfig
-from manifold_nets.inputs import ObserverInputs
-from manifold_nets.observer import ObserverState, ResidualObserver
+from manifold_nets.observer import (
+    Embedding,
+    Measurement,
+    ObserverState,
+    PlainHead,
+    Readings,
+    ResidualObserver,
+    SystemPrior,
+)
 from manifold_nets_examples.attitude import Attitude
 from manifold_nets_examples.planar import Planar
 from manifold_nets_examples.rigid_body import MismatchedRigidBody, RigidBody
 from tests.observer_checks import assert_online_matches_rollout, train_tiny_and_load
+from tests.test_centred_update import block_overrides, rigid_observer, simulate
 
 SYSTEMS = {
     "rigid_body": lambda: RigidBody(),
@@ -29,26 +40,16 @@ SYSTEMS = {
 }
 
 
-def simulate(system, n=4, t=30, sigma=0.0, seed=1):
-    return system.simulate(n, t, sigma, torch.Generator().manual_seed(seed))
+def prior_observer(system=None, zero=False, seed=0, **changes) -> ResidualObserver:
+    """:func:`rigid_observer` with the plain head; ``zero``: the core's output at zero, where a
+    core the observer makes starts (only the prior moves the estimate)."""
+    return rigid_observer(system, seed, head=changes.pop("head", PlainHead()), untrained=zero,
+                          **changes)
 
 
-def rigid_model(**changes) -> ModelConfig:
-    base = dict(
-        hidden_size=16, num_layers=1, innovation={"R": [0, 9], "p": [9, 12]},
-        relative_only=["p"], prior="system", updates={},
-    )
+def _model(**changes) -> ModelConfig:
+    base = dict(hidden_size=16, num_layers=1, updates={})
     return OmegaConf.structured(ModelConfig(**{**base, **changes}))
-
-
-def rigid_observer(system=None, zero=False, seed=0, **changes) -> ResidualObserver:
-    system = RigidBody() if system is None else system
-    torch.manual_seed(seed)
-    obs = build_observer(system.group, 18, 0, rigid_model(**changes), system=system).double()
-    if zero:  # the core outputs 0: only the prior moves the estimate
-        torch.nn.init.zeros_(obs.core.head.weight)
-        torch.nn.init.zeros_(obs.core.head.bias)
-    return obs
 
 
 @pytest.mark.parametrize("name", sorted(SYSTEMS))
@@ -61,6 +62,30 @@ def test_predict_from_the_true_state_and_noise_free_readings_is_the_next_state(n
     for k in (0, 7, 29):
         pred = system.predict(data.states[:, k], data.measurements[:, k], u if u is None else u[:, k])
         assert torch.allclose(pred, data.states[:, k + 1], atol=1e-12), name
+
+
+@pytest.mark.parametrize("make", [RigidBody, Attitude, Planar])
+def test_the_prediction_steps_with_the_compensated_drive(make):
+    system = make()
+    g = torch.Generator().manual_seed(3)
+    data = system.simulate(2, 5, 0.2, g)
+    # an estimate whose biases are off, so the compensation shows
+    x = data.states[:, 2] + 0.0
+    x[..., -2:] += 0.3
+    y = data.measurements[:, 2]
+    drive = system.compensated_drive(x, y, None)
+    assert drive.shape == (2, system.drive_dim)
+    torch.testing.assert_close(system.predict(x, y, None), system.step(x, drive), rtol=0, atol=0)
+    # the compensated drive is the reading less what the estimate says of its error
+    assert not torch.equal(drive, system.drive_from_measurement(y, None))
+
+
+def test_the_rigid_bodys_compensated_drive_is_the_readings_less_the_estimated_biases():
+    system = RigidBody()
+    data = simulate(system, n=3, t=4, sigma=0.1)
+    x, y = data.states[:, 1], data.measurements[:, 1]
+    want = torch.cat([y[:, 12:15] - x[:, 12:15], y[:, 15:18] - x[:, 15:18]], dim=-1)
+    torch.testing.assert_close(system.compensated_drive(x, y, None), want, rtol=0, atol=0)
 
 
 def test_the_rigid_bodys_prediction_subtracts_the_estimates_biases():
@@ -78,7 +103,8 @@ def test_the_rigid_bodys_prediction_subtracts_the_estimates_biases():
 def test_a_zero_correction_started_at_the_truth_follows_it_exactly():
     system = RigidBody()
     data = simulate(system, t=50)
-    obs = rigid_observer(system, zero=True)
+    obs = prior_observer(system, zero=True)
+    assert torch.count_nonzero(obs.core.head.weight) == 0  # an untrained observer's
     start = ObserverState(data.states[:, 0].clone(), obs.init_state(4).hidden)
     with torch.no_grad():
         est = obs(data.measurements, state=start)
@@ -88,13 +114,13 @@ def test_a_zero_correction_started_at_the_truth_follows_it_exactly():
 def test_the_core_reads_the_prediction():
     system = RigidBody()
     data = simulate(system, n=2, t=1, sigma=0.1)
-    obs = rigid_observer(system, zero=True)
+    obs = prior_observer(system, zero=True)
     seen = []
     obs.core.step = lambda inp, h: (seen.append(inp) or torch.zeros(2, 12, dtype=inp.dtype), h)
     obs(data.measurements)
     x0 = system.group.identity((2,), dtype=torch.float64)
     pred = system.predict(x0, data.measurements[:, 0], None)
-    # relative_only p: the core reads vec R, the biases, y less p^m, then the innovations
+    # p dropped: the core reads vec R, the biases, y less p^m, then the innovations
     assert torch.allclose(seen[0][:, :9], pred[:, :9])
     assert torch.allclose(seen[0][:, 9:15], pred[:, 12:])
     innov_R = system.group.factor("R").rminus(
@@ -107,17 +133,17 @@ def test_the_core_reads_the_prediction():
 def test_rollout_online_steps_and_the_exported_step_agree(pose_group):
     system = RigidBody(pose_group=pose_group)
     data = simulate(system, n=3, t=12, sigma=0.3)
-    obs = rigid_observer(system, innovation={}, relative_only=[])
+    obs = prior_observer(system, measurement=Measurement(18), features=[Embedding(), Readings()])
     est = assert_online_matches_rollout(obs, data.measurements)
     system.group.check_member(est)
 
 
 def test_the_gradient_through_the_prior_is_finite_and_reaches_the_bias_outputs():
     """A loss on the attitude alone reaches the head's ``b_Omega`` outputs (through the prior's
-    ``Omega^m - bhat`` and the core's input); every gradient finite."""
+    ``Omega^m - bhat_Omega`` and the core's input); every gradient finite."""
     system = RigidBody()
     data = simulate(system, n=4, t=10, sigma=0.1)
-    obs = rigid_observer(system)
+    obs = prior_observer(system)
     est = obs(data.measurements)
     (est[:, 2:, :9] - data.states[:, 2:, :9]).pow(2).mean().backward()
     grads = [p.grad for p in obs.parameters()]
@@ -126,38 +152,60 @@ def test_the_gradient_through_the_prior_is_finite_and_reaches_the_bias_outputs()
 
 
 def test_the_signature_records_the_prior_and_a_checkpoint_needs_it():
-    with_prior = rigid_observer().signature()
-    without = rigid_observer(prior="none").signature()
-    assert with_prior["prior"] == "system" and "prior" not in without
-    check_signature(with_prior, rigid_observer(seed=3).signature())
-    with pytest.raises(CheckpointError, match="prior"):
+    with_prior = prior_observer().signature()
+    without = prior_observer(prior="none").signature()
+    assert with_prior["prior"] == {"type": "system"} and without["prior"] == {"type": "none"}
+    check_signature(with_prior, prior_observer(seed=3).signature())
+    with pytest.raises(CheckpointError, match="prior.type: checkpoint 'system', model 'none'"):
         check_signature(with_prior, without)
 
 
 def test_bad_prior_settings_say_what_is_wrong():
     system = RigidBody()
-    with pytest.raises(ValueError, match=r"model.prior='kalman' is not one of \('none', 'system'\)"):
-        build_observer(system.group, 18, 0, rigid_model(prior="kalman"), system=system)
-    with pytest.raises(ValueError, match="model.prior=system needs the system"):
-        build_observer(system.group, 18, 0, rigid_model())
-    with pytest.raises(ValueError, match="cannot be combined with model.relax"):
-        build_observer(
-            system.group, 18, 0, rigid_model(relax=["R"], innovation={}, relative_only=[]),
-            system=system,
-        )
-    with pytest.raises(TypeError, match="prior must be a callable"):
-        ResidualObserver(system.group, 18, hidden_size=4, num_layers=1, prior="system")
-    with pytest.raises(ValueError, match="prior and inputs.propagate are two kinematic priors"):
-        ResidualObserver(
-            system.group, 18, hidden_size=4, num_layers=1, prior=system.predict,
-            inputs=ObserverInputs(propagate={"R": (12, 15)}, dt=0.1),
-        )
+    with pytest.raises(ValueError, match=r"model.prior.type: 'kalman' is not a prior piece; the "
+                                         r"priors are \['kinematic', 'none', 'robust_system', "
+                                         r"'system'"):
+        build_observer(system.group, 18, 0, _model(prior={"type": "kalman"}), system=system)
+    with pytest.raises(ValueError, match=r"model.prior \(system\): needs \['system'\] \(pass "
+                                         r"build_observer\(\.\.\., system=system\)\)"):
+        build_observer(system.group, 18, 0, _model(prior={"type": "system"}))
+    with pytest.raises(ValueError, match=r"model.prior \(system\): .*a prior cannot be combined "
+                                         "with factors taken off the group"):
+        build_observer(system.group, 18, 0, _model(prior={"type": "system"}, relax=["R"]),
+                       system=system)
+    with pytest.raises(ValueError, match=r"model.prior \(system\): unknown key\(s\) \['dt'\]"):
+        build_piece("prior", {"type": "system", "dt": 0.1}, "model.prior", {"system": system})
+    with pytest.raises(TypeError, match="SystemPrior needs a System, got str"):
+        SystemPrior("system")
+    with pytest.raises(ValueError, match="the system prior predicts on .* but the observer's "
+                                         "group is"):
+        ResidualObserver(RigidBody(pose_group="se3").group, 18, prior=SystemPrior(system))
+
+
+@pytest.mark.parametrize("prior", ["system", "predict"])
+def test_a_prior_that_is_not_a_piece_says_so(prior):
+    """``prior=`` takes a Prior piece; the first API's callable (``system.predict``) or name
+    must be refused with the type the observer wants, not fail inside the observer."""
+    system = RigidBody()
+    given = system.predict if prior == "predict" else prior
+    with pytest.raises(TypeError, match="prior must be a Prior"):
+        ResidualObserver(system.group, 18, prior=given)
+
+
+def test_an_unknown_first_format_prior_says_so():
+    """The first format's ``prior`` is ``none`` or ``system``: another name must be refused,
+    as it was ("model.prior='kalman' is not one of ('none', 'system')"), not read as none."""
+    system = RigidBody()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", FutureWarning)
+        with pytest.raises(ValueError, match="kalman"):
+            build_observer(system.group, 18, 0, _model(prior="kalman"), system=system)
 
 
 def test_the_train_command_trains_with_the_prior_and_load_observer_rebuilds_it(tmp_path):
-    observer, system, _ = train_tiny_and_load("paper_cpu_prior", tmp_path)
-    assert observer.signature()["prior"] == "system"
-    assert observer.prior == system.predict
+    observer, system, _ = train_tiny_and_load("paper_cpu_prior", tmp_path, *block_overrides())
+    assert observer.signature()["prior"] == {"type": "system"}
+    assert isinstance(observer.prior, SystemPrior) and observer.prior.system is system
     data = simulate(system, n=2, t=5, sigma=0.1)
     with torch.inference_mode():
         est = observer(data.measurements)

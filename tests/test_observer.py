@@ -228,7 +228,7 @@ def test_bad_construction_is_rejected_clearly():
         ResidualObserver(RIGID, 18, core=GRUCore(30, 12, 4, 1))
     with pytest.raises(TypeError, match="LieGroup"):
         ResidualObserver("SO3", 18)
-    with pytest.raises(ValueError, match="Measurement: dim"):  # measurement_dim, now Measurement.dim
+    with pytest.raises(ValueError, match="Measurement: dim"):  # was measurement_dim
         ResidualObserver(SO3(), 0)
 
 

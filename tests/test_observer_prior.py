@@ -1,28 +1,49 @@
-"""The observer's kinematic prior (``propagate``), world-frame vectors (``rotated``) and the
-``left`` update rule: an AHRS-shaped observer on SO(3) x R^3 reading (acc, mag) and a gyro."""
+"""The observer's kinematic prior (``KinematicPrior``), world-frame vectors (the ``Rotated``
+feature), the ``left`` update rule and the output scale (``OutputScale``): an AHRS-shaped
+observer on SO(3) x R^3 reading (acc, mag) and a gyro."""
 
 from __future__ import annotations
+
+import functools
 
 import pytest
 import torch
 
 from groups import SO3, Euclidean, Product
-from manifold_nets.inputs import ObserverInputs
-from manifold_nets.observer import ResidualObserver
+from manifold_nets.builders import build_piece
+from manifold_nets.cores import GRUCore
+from manifold_nets.observer import (
+    Embedding,
+    GroupUpdate,
+    KinematicPrior,
+    Measurement,
+    OutputScale,
+    Readings,
+    ResidualObserver,
+    Rotated,
+)
 
 G = Product(SO3(), Euclidean(3), names=("R", "b"))
 DT = 0.01
-INPUTS = ObserverInputs(rotated={"R": [(0, 3), (3, 6)]}, propagate={"R": (6, 9)}, dt=DT)
+VECTORS = {"R": [(0, 3), (3, 6)]}
+GYRO = {"R": (6, 9)}
 
 
-def model(rule="residual", inputs=INPUTS, zero=True, seed=0):
+def model(rule="residual", prior=True, rotated=True, zero=True, seed=0, scales=()):
+    """The AHRS observer, y = (acc, mag), u = gyro, a 1 x 8 GRU core; ``zero``: the core's
+    output layer at zero, where a core the observer makes starts (only the prior moves the
+    estimate), else random."""
     torch.manual_seed(seed)
     obs = ResidualObserver(
-        G, 6, 3, hidden_size=8, num_layers=1, inputs=inputs, update={"R": rule}
+        G, Measurement(6, 3), functools.partial(GRUCore, hidden_size=8, num_layers=1),
+        update=GroupUpdate({"R": rule}), prior=KinematicPrior(GYRO, DT) if prior else None,
+        features=[Embedding(), Readings()] + ([Rotated(VECTORS)] if rotated else []),
+        scales=scales,
     ).double()
-    if zero:  # the core outputs 0: only the prior moves the estimate
-        torch.nn.init.zeros_(obs.core.head.weight)
-        torch.nn.init.zeros_(obs.core.head.bias)
+    assert torch.count_nonzero(obs.core.head.weight) == 0
+    if not zero:
+        with torch.no_grad():
+            obs.core.head.reset_parameters()
     return obs
 
 
@@ -65,11 +86,12 @@ def test_left_and_residual_updates_differ_by_the_frame_of_the_correction():
     v = 0.1 * torch.randn(4, 6, dtype=torch.float64)
     left, right = model("left"), model("residual")
     R, w = x[:, :9].unflatten(-1, (3, 3)), v[:, :3]
+    assert left.update.rules == ("left", "residual")
     assert torch.allclose(
-        left._update(x, v)[:, :9].unflatten(-1, (3, 3)), SO3().exp(w) @ R, atol=1e-12
+        left.update(x, v)[:, :9].unflatten(-1, (3, 3)), SO3().exp(w) @ R, atol=1e-12
     )
     assert torch.allclose(
-        right._update(x, v)[:, :9].unflatten(-1, (3, 3)), R @ SO3().exp(w), atol=1e-12
+        right.update(x, v)[:, :9].unflatten(-1, (3, 3)), R @ SO3().exp(w), atol=1e-12
     )
 
 
@@ -77,44 +99,78 @@ def test_the_core_reads_the_vectors_rotated_by_the_prediction():
     y, u = data(n=2, t=1)
     obs = model()
     seen = []
-    obs.core.register_forward_hook(lambda m, args, out: seen.append(args[0]))
     obs.core.step = lambda inp, h: (seen.append(inp) or torch.zeros(2, 6, dtype=inp.dtype), h)
     obs(y, u)
     inp = seen[0]
     R = SO3().exp(u[:, 0] * DT)  # the prediction from the identity
     assert inp.shape[-1] == 12 + 9 + 6
+    assert [f.width for f in obs.features] == [12, 9, 6]
     assert torch.allclose(inp[:, :9], R.flatten(-2))  # embed of the prediction (b = 0 after)
     assert torch.allclose(inp[:, -6:-3], (R @ y[:, 0, :3, None])[..., 0])
     assert torch.allclose(inp[:, -3:], (R @ y[:, 0, 3:6, None])[..., 0])
 
 
-def test_the_signature_records_the_prior_and_old_signatures_are_unchanged():
+def test_the_signature_records_the_prior_and_the_feature():
     sig = model().signature()
-    assert sig["propagate"] == {"R": [6, 9]} and sig["dt"] == DT
-    assert sig["rotated"] == {"R": [[0, 3], [3, 6]]}
-    plain = ResidualObserver(G, 6, 3, hidden_size=8, num_layers=1).signature()
-    assert "propagate" not in plain and "rotated" not in plain
+    assert sig["prior"] == {"type": "kinematic", "velocities": {"R": [6, 9]}, "dt": DT}
+    assert sig["features"][-1] == {"type": "rotated", "vectors": {"R": [[0, 3], [3, 6]]}}
+    plain = model(prior=False, rotated=False).signature()
+    assert plain["prior"] == {"type": "none"}
+    assert plain["features"] == [{"type": "embedding"}, {"type": "readings"}]
+
+
+def _build(prior=None, features=()):
+    return ResidualObserver(G, Measurement(6, 3), prior=prior,
+                            features=[Embedding(), Readings(), *features])
 
 
 @pytest.mark.parametrize(
-    "kwargs, message",
+    "make, message",
     [
-        ({"propagate": {"R": (6, 9)}}, "propagate needs dt, the step length in seconds"),
-        ({"propagate": {"R": (6, 8)}, "dt": 0.1}, r"propagate\['R'\] = \(6, 8\) must be a span"),
-        ({"propagate": {"q": (6, 9)}, "dt": 0.1}, "propagate names a factor 'q'"),
-        ({"rotated": {"b": [(0, 3)]}}, r"rotated\['b'\]: the factor must be a rotation of R\^3"),
-        ({"rotated": {"R": [(0, 4)]}}, r"rotated\['R'\] span \(0, 4\) must be 3 entries"),
-        ({"rotated": {"R": (0, 3)}}, r"must be \(start, stop\) in \(y, u\)"),
+        (lambda: KinematicPrior(GYRO, 0), r"kinematic prior: dt must be a number .* \(the step "
+                                          "length in seconds"),
+        (lambda: KinematicPrior(GYRO, -0.1), "kinematic prior: dt must be a number"),
+        (lambda: KinematicPrior({}, 0.1), "kinematic prior: name at least one factor"),
+        (lambda: KinematicPrior({"R": 6}, 0.1),
+         r"kinematic prior: velocities\['R'\] must be \(start, stop\) in \(y, u\)"),
+        (lambda: _build(KinematicPrior({"R": (6, 8)}, 0.1)),
+         r"kinematic prior: velocities\['R'\] = \(6, 8\) must be a span"),
+        (lambda: _build(KinematicPrior({"R": (7, 10)}, 0.1)),
+         r"velocities\['R'\] = \(7, 10\) must be a span of \(y, u\) \(size 9\)"),
+        (lambda: _build(KinematicPrior({"q": (6, 9)}, 0.1)),
+         "kinematic prior: velocities names a factor 'q'"),
+        (lambda: _build(features=[Rotated({"b": [(0, 3)]})]),
+         r"rotated: vectors\['b'\]: the factor must be a rotation of R\^3"),
+        (lambda: _build(features=[Rotated({"R": [(0, 4)]})]),
+         r"rotated: span \(0, 4\) must be 3 entries"),
+        (lambda: _build(features=[Rotated({"R": [(6, 9), (7, 10)]})]),
+         r"rotated: span \(7, 10\) must be 3 entries of \(y, u\) \(size 9\)"),
+        (lambda: Rotated({"R": (0, 3)}), r"rotated: vectors\['R'\]: 0 is not \(start, stop\)"),
+        (lambda: Rotated({}), "rotated: name a rotation factor and its vectors' spans"),
+        (lambda: _build(features=[Rotated({"q": [(0, 3)]})]),
+         "rotated: vectors names a factor 'q'"),
     ],
 )
-def test_bad_prior_or_rotated_settings_say_what_is_wrong(kwargs, message):
+def test_bad_prior_or_rotated_settings_say_what_is_wrong(make, message):
     with pytest.raises(ValueError, match=message):
-        ResidualObserver(G, 6, 3, hidden_size=8, num_layers=1, inputs=ObserverInputs(**kwargs))
+        make()
+
+
+def test_bad_blocks_name_where_they_are():
+    with pytest.raises(ValueError, match=r"model.prior \(kinematic\): needs \['dt'\]"):
+        build_piece("prior", {"type": "kinematic", "velocities": {"R": [6, 9]}}, "model.prior")
+    with pytest.raises(ValueError, match=r"model.features\[2\] \(rotated\): rotated: name a "
+                                         "rotation factor"):
+        build_piece("feature", {"type": "rotated", "vectors": {}}, "model.features[2]")
+    prior = build_piece("prior", {"type": "kinematic", "velocities": {"R": [6, 9]}},
+                        "model.prior", {"dt": 0.1})
+    assert prior.settings() == {"velocities": {"R": [6, 9]}, "dt": 0.1}
 
 
 def test_the_train_command_builds_and_load_observer_rebuilds_the_prior(tmp_path):
-    """Through the config: an attitude observer (gyro in y[6:9]) with the prior, world-frame
-    directions and left updates trains, and its run folder loads into the same observer."""
+    """Through the config: an attitude observer (gyro in y[6:9]) with the kinematic prior,
+    world-frame directions and left updates trains, and its run folder loads into the same
+    observer."""
     from pathlib import Path
 
     from hydra import compose, initialize_config_dir
@@ -126,14 +182,18 @@ def test_the_train_command_builds_and_load_observer_rebuilds_the_prior(tmp_path)
     root = Path(__file__).resolve().parents[1]
     overrides = [
         "experiment=attitude", "debug=tiny", f"dataset.cache_dir={tmp_path / 'data'}",
-        "+model.propagate.R=[6,9]", "+model.rotated.R=[[0,3],[3,6]]", "+model.updates.R=left",
+        "++model.prior={type:kinematic,velocities:{R:[6,9]}}",
+        "++model.features=[embedding,readings,{type:rotated,vectors:{R:[[0,3],[3,6]]}}]",
+        "+model.updates.R=left",
     ]
     with initialize_config_dir(config_dir=str(root / "configs"), version_base="1.3"):
         cfg = compose("train", overrides=overrides)
     run(cfg, tmp_path / "run")
     observer, system, _ = load_observer(tmp_path / "run")
     sig = observer.signature()
-    assert sig["propagate"] == {"R": [6, 9]} and sig["dt"] == system.dt == 0.1
+    assert sig["prior"] == {"type": "kinematic", "velocities": {"R": [6, 9]}, "dt": 0.1}
+    assert system.dt == 0.1
+    assert sig["features"][-1] == {"type": "rotated", "vectors": {"R": [[0, 3], [3, 6]]}}
     assert sig["update"] == ["left", "absolute"]
     data = system.simulate(2, 5, 0.1, torch.Generator().manual_seed(0))
     with torch.inference_mode():
@@ -142,21 +202,20 @@ def test_the_train_command_builds_and_load_observer_rebuilds_the_prior(tmp_path)
 
 
 def test_output_scale_multiplies_the_cores_output_and_is_checked():
-    y, u = data(n=2, t=3)
-    a = model(zero=False, inputs=ObserverInputs())
-    torch.manual_seed(0)
-    b = ResidualObserver(
-        G, 6, 3, hidden_size=8, num_layers=1, update={"R": "residual"}, output_scale=0.5
-    ).double()
+    y = torch.zeros(2, 6, dtype=torch.float64)
+    u = torch.zeros(2, 3, dtype=torch.float64)
+    a = model(prior=False, rotated=False, zero=False)
+    b = model(prior=False, rotated=False, zero=False, scales=[OutputScale(0.5)])
     b.load_state_dict(a.state_dict())
-    x0 = G.identity((2,), dtype=torch.float64)
-    step_a = a._step(x0, a.core.initial_hidden(2, dtype=torch.float64),
-                     a._context(torch.zeros(2, 9, dtype=torch.float64)))[0]
-    step_b = b._step(x0, b.core.initial_hidden(2, dtype=torch.float64),
-                     b._context(torch.zeros(2, 9, dtype=torch.float64)))[0]
+    step_a = a.step(a.init_state(2), y, u).estimate
+    step_b = b.step(b.init_state(2), y, u).estimate
     # the R^3 factor starts at 0 and is residual: after one step it holds v itself
     assert bool(step_a[:, 9:].abs().min() > 0)
     assert torch.allclose(step_b[:, 9:], step_a[:, 9:] / 2)
-    assert b.signature()["output_scale"] == 0.5 and "output_scale" not in a.signature()
-    with pytest.raises(ValueError, match="output_scale must be a positive number, got 0"):
-        ResidualObserver(G, 6, 3, hidden_size=8, num_layers=1, output_scale=0)
+    assert b.signature()["scales"] == [{"type": "output", "scale": 0.5}]
+    assert a.signature()["scales"] == []
+    for bad in (0, -1.0, True, "0.5"):
+        with pytest.raises(ValueError, match=r"output scale must be a number .*\(> 0\)"):
+            OutputScale(bad)
+    with pytest.raises(ValueError, match=r"model.scales\[0\] \(output\): output scale must be"):
+        build_piece("scale", {"type": "output", "scale": 0}, "model.scales[0]")

@@ -5,6 +5,8 @@ training."""
 
 from __future__ import annotations
 
+import functools
+
 import pytest
 import torch
 
@@ -12,9 +14,12 @@ from manifold_nets_examples.rigid_body import RigidBody
 from manifold_nets_examples.rigid_body.system import POSE_GROUPS
 from groups import SE3, SO3
 from manifold_nets.datasets import dataset_path
-from manifold_nets.observer import ResidualObserver
-from manifold_nets import MeasurementNoise, ObserverInputs, TrainSettings
+from manifold_nets.observer import (
+    Embedding, GroupUpdate, Innovation, Measurement, Readings, ResidualObserver,
+)
+from manifold_nets import GRUCore, MeasurementNoise, TrainSettings
 from manifold_nets.training import fit
+from tests.observer_checks import randomise_head
 
 F64 = torch.float64
 DEFAULT, POSE = RigidBody(), RigidBody(pose_group="se3")
@@ -179,10 +184,13 @@ def test_observer_on_se3_stays_on_the_group():
     data = POSE.simulate(3, 15, 0.1, gen(12))
     torch.manual_seed(0)
     obs = ResidualObserver(
-        POSE.group, 18, hidden_size=8, num_layers=1,
-        update={"b_omega": "absolute", "b_v": "absolute"}, inputs=ObserverInputs({"T": (0, 12)}),
+        POSE.group, Measurement(18, factors={"T": (0, 12)}),
+        functools.partial(GRUCore, hidden_size=8, num_layers=1),
+        update=GroupUpdate({"b_omega": "absolute", "b_v": "absolute"}),
+        features=[Embedding(), Readings(), Innovation()],
     )  # fmt: skip
     assert obs.core.input_size == 18 + 18 + 6  # embed(xhat), y, log(That^-1 T^m)
+    randomise_head(obs)  # a core made by the observer starts with its output layer at zero
     with torch.no_grad():
         obs.core.head.weight.mul_(5.0)  # steps of about a radian stress the update
         est = obs(data.measurements)
@@ -199,7 +207,9 @@ def test_noise_augmented_fit_runs(tmp_path, pose_group):
     system = RigidBody(pose_group=pose_group)
     train, val = system.simulate(8, 6, 0.0, gen(13)), system.simulate(4, 6, 0.0, gen(14))
     torch.manual_seed(0)
-    model = ResidualObserver(system.group, 18, hidden_size=8, num_layers=1)
+    model = ResidualObserver(
+        system.group, 18, functools.partial(GRUCore, hidden_size=8, num_layers=1)
+    )
     settings = TrainSettings(epochs=1, batch_size=4, progress=False)
     noise = MeasurementNoise(system, 0.0, 0.3)
     res = fit(model, train, val, settings, out_dir=tmp_path, transform=noise)

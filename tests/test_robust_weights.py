@@ -1,11 +1,12 @@
-"""Learned robust weights (``manifold_nets.robust``; ``model.robust_drive``,
-``model.robust_innovation``) and per-parameter learning rates (``train.param_lr``). Pinned: the
-weight function against its formula, the identity when new, a norm whose gradient is finite at
-zero; the prior steps with the weighted drive and the core reads the weighted innovation and
-the measurement it implies, each computed apart; a new map changes nothing; rollout, pieces,
-online and exported steps agree; gradients reach the maps; a checkpoint without them widens
-only for fine-tuning; bad settings say what is wrong; each parameter group trains at its own
-rate on the same schedule; the train command trains and reloads it."""
+"""Learned robust weights (``manifold_nets.observer.robust``; the pieces ``RobustSystemPrior``
+and ``RobustMeasurement``, ``prior: {type: robust_system}``, ``measurement: {type: robust}``) and
+per-parameter learning rates (``train.param_lr``). Pinned: the weight function against its
+formula, the identity when new, a norm whose gradient is finite at zero; the prior steps with the
+weighted drive and the core reads the weighted innovation and the measurement it implies, each
+computed apart; new maps change nothing; rollout, pieces, online and exported steps agree;
+gradients reach the maps; a checkpoint without them widens only for fine-tuning; bad settings
+say what is wrong; each parameter group trains at its own rate on the same schedule; the train
+command trains and reloads it."""
 
 from __future__ import annotations
 
@@ -17,17 +18,39 @@ from omegaconf import OmegaConf
 
 from groups import SO3
 from manifold_nets import TrainSettings, build_observer, fit
+from manifold_nets.builders import build_piece
 from manifold_nets.checkpoint import CheckpointError, load_checkpoint, load_weights
 from manifold_nets.config import ModelConfig
-from manifold_nets.observer import ResidualObserver
-from manifold_nets.robust import RobustWeights, safe_norm
+from manifold_nets.observer import (
+    CentredHead,
+    FramedInnovation,
+    PlainHead,
+    RobustMeasurement,
+    RobustSystemPrior,
+)
+from manifold_nets.observer.robust import RobustWeights, check_span, safe_norm
 from manifold_nets.training import check_settings, param_groups
 from manifold_nets_examples.rigid_body import RigidBody
 from tests.observer_checks import assert_pieces_and_export_match, train_tiny_and_load
-from tests.test_centred_update import rigid_observer, save, simulate
+from tests.test_centred_update import MEASURED, block_overrides, rigid_observer, save, simulate
 from tests.test_innovation_frame import _core_inputs
 
 FRAME = {"p": "R"}
+#: a learning rate for each piece holding learned weight functions (its parameters are theirs)
+MAPS = {"prior": 1e-2, "measurement": 1e-2}
+
+
+def maps(piece) -> RobustWeights:
+    """The learned weight functions a robust piece holds."""
+    found = [m for m in piece.modules() if isinstance(m, RobustWeights)]
+    assert len(found) == 1, found
+    return found[0]
+
+
+def prefix(obs, where: str) -> str:
+    """The parameter-name prefix of the weight functions of ``obs``'s piece ``where``."""
+    return next(n for n, m in obs.named_modules()
+                if isinstance(m, RobustWeights) and n.startswith(where + "."))
 
 
 def shaped(m: RobustWeights, seed: int = 0) -> RobustWeights:
@@ -71,6 +94,8 @@ def test_bad_maps_say_what_is_wrong():
     for bad in (0, -1.0, math.inf, True):
         with pytest.raises(ValueError, match="span must be a number > 0"):
             RobustWeights(2, span=bad)
+        with pytest.raises(ValueError, match="model.robust_span must be a number > 0"):
+            check_span(bad, "model.robust_span")
     with pytest.raises(ValueError, match=r"r must have shape \(\.\.\., 2\)"):
         RobustWeights(2)(torch.ones(4, 3))
     one = RobustWeights(1, width=1)  # one step: no spacing to speak of, still a finite width
@@ -94,22 +119,30 @@ def test_safe_norm_is_the_norm_with_a_finite_gradient_at_zero(dtype):
 # ---------------------------------------------------------------------- in the observer
 
 
-def robust_observer(system, seed=0, drive=0, innovation=0, **changes) -> ResidualObserver:
-    return rigid_observer(
-        system, seed=seed, robust_drive=drive, robust_innovation=innovation, robust_span=2.0,
-        **changes,
-    )
+def robust_observer(system, seed=0, drive=0, innovation=0, span=2.0, **changes):
+    """:func:`rigid_observer` with a robust system prior of ``drive`` steps per weight function
+    and a robust measurement of ``innovation`` steps (0: the plain piece)."""
+    if drive:
+        changes["prior"] = RobustSystemPrior(system, width=drive, span=span)
+    if innovation:
+        changes["measurement"] = RobustMeasurement(18, 0, MEASURED, width=innovation, span=span)
+    return rigid_observer(system, seed=seed, **changes)
 
 
 def test_new_maps_change_nothing():
     system = RigidBody()
     data = simulate(system, n=3, t=15, sigma=0.3)
-    settings = dict(centering=0.85, centering_ramp=4, innovation_frame=FRAME)
+    settings = dict(head=CentredHead(0.85, ramp=4), extra=[FramedInnovation(FRAME)])
     plain = rigid_observer(system, seed=4, **settings)
     robust = robust_observer(system, seed=4, drive=6, innovation=4, **settings)
-    assert robust.signature()["robust_drive"] == {"channels": 6, "width": 6, "span": 2.0}
-    assert robust.signature()["robust_innovation"] == {"channels": 2, "width": 4, "span": 2.0}
-    assert "robust_drive" not in plain.signature()  # older checkpoints
+    sig = robust.signature()
+    assert sig["prior"] == {"type": "robust_system", "width": 6, "span": 2.0}
+    assert sig["measurement"] == {"type": "robust", "dim": 18, "input_dim": 0,
+                                  "factors": {"R": [0, 9], "p": [9, 12]}, "width": 4, "span": 2.0}
+    assert maps(robust.prior).signature() == {"channels": 6, "width": 6, "span": 2.0}
+    assert maps(robust.measurement).signature() == {"channels": 2, "width": 4, "span": 2.0}
+    assert plain.signature()["prior"] == {"type": "system"}
+    assert plain.signature()["measurement"]["type"] == "measurement"
     with torch.no_grad():
         gap = (robust(data.measurements) - plain(data.measurements)).abs().max()
     assert float(gap) < 1e-12  # an exp(log(.)) round trip of the measured attitude
@@ -120,13 +153,13 @@ def test_the_prior_steps_with_the_weighted_drive():
     ``x_{k+1} = step(x_k, w(|d_k|) d_k)``, ``d_k`` the bias-corrected readings, followed apart."""
     system = RigidBody()
     data = simulate(system, n=3, t=10, sigma=0.4)
-    obs = robust_observer(system, seed=1, drive=5, centering=0.0)
-    shaped(obs.robust_drive)
+    obs = robust_observer(system, seed=1, drive=5, head=PlainHead())
+    shaped(maps(obs.prior))
     with torch.no_grad():
         obs.core.head.weight.zero_()
         obs.core.head.bias.zero_()
         est = obs(data.measurements)
-        w_map = obs.robust_drive
+        w_map = maps(obs.prior)
         x = system.group.identity((3,), dtype=torch.float64)
         for k in range(10):
             d = system.compensated_drive(x, data.measurements[:, k], None)
@@ -142,12 +175,13 @@ def test_the_prior_steps_with_the_weighted_drive():
 def test_the_core_reads_the_weighted_innovation_and_the_measurement_it_implies(centred):
     system = RigidBody()
     data = simulate(system, n=3, t=8, sigma=0.5)
-    changes = {"centering": 0.8 if centred else 0.0, "innovation_frame": FRAME}
-    obs = robust_observer(system, seed=2, innovation=6, **changes)
-    shaped(obs.robust_innovation, seed=3)
+    head = CentredHead(0.8) if centred else PlainHead()
+    obs = robust_observer(system, seed=2, innovation=6, head=head,
+                          extra=[FramedInnovation(FRAME)])
+    shaped(maps(obs.measurement), seed=3)
     seen, est = _core_inputs(obs, data.measurements)
     R, G = SO3(), system.group
-    n, w_map = 3, obs.robust_innovation
+    n, w_map = 3, maps(obs.measurement)
     for k in range(8):
         xp = system.predict(est[:, k], data.measurements[:, k], None)  # the prior's x^-
         y = data.measurements[:, k]
@@ -175,10 +209,10 @@ def test_the_core_reads_the_weighted_innovation_and_the_measurement_it_implies(c
 def test_rollout_pieces_online_and_exported_steps_agree(tmp_path):
     system = RigidBody()
     data = simulate(system, n=2, t=9, sigma=0.3)
-    obs = robust_observer(system, drive=4, innovation=4, centering=0.85, centering_ramp=3,
-                          innovation_frame=FRAME, prior_drive=True)
-    shaped(obs.robust_drive)
-    shaped(obs.robust_innovation, seed=1)
+    obs = robust_observer(system, drive=4, innovation=4, head=CentredHead(0.85, ramp=3),
+                          extra=[FramedInnovation(FRAME)])
+    shaped(maps(obs.prior))
+    shaped(maps(obs.measurement), seed=1)
     est = assert_pieces_and_export_match(obs, data.measurements, tmp_path)
     system.group.check_member(est)
 
@@ -187,83 +221,151 @@ def test_rollout_pieces_online_and_exported_steps_agree(tmp_path):
 def test_gradients_reach_the_maps_and_stay_finite(sigma):
     system = RigidBody()
     data = simulate(system, n=3, t=12, sigma=sigma)
-    obs = robust_observer(system, drive=4, innovation=4, centering=0.85).float()
+    obs = robust_observer(system, drive=4, innovation=4, head=CentredHead(0.85)).float()
     est = obs(data.measurements)
     loss = (est[:, 1:] - data.states[:, 1:]).pow(2).mean()
     loss.backward()
-    for name in ("robust_drive", "robust_innovation"):
-        grads = [p.grad for p in getattr(obs, name).parameters()]
+    for m in (maps(obs.prior), maps(obs.measurement)):
+        grads = [p.grad for p in m.parameters()]
         assert all(g is not None and torch.isfinite(g).all() for g in grads)
-        assert float(getattr(obs, name).amplitude.grad.abs().sum()) > 0  # the heights learn first
+        assert float(m.amplitude.grad.abs().sum()) > 0  # the heights learn first
 
 
 def test_a_checkpoint_without_them_widens_only_for_fine_tuning(tmp_path):
     system = RigidBody()
     data = simulate(system, n=3, t=12, sigma=0.2)
-    settings = dict(centering=0.85, centering_ramp=5, innovation_frame=FRAME)
+    settings = dict(head=CentredHead(0.85, ramp=5), extra=[FramedInnovation(FRAME)])
     plain = rigid_observer(system, seed=1, **settings)
     path = save(plain, tmp_path / "plain.pt")
     robust = robust_observer(system, seed=2, drive=4, innovation=3, **settings)
-    shaped(robust.robust_drive)  # whatever it held is replaced by the identity
-    with pytest.raises(CheckpointError, match="robust_drive"):  # evaluation
+    shaped(maps(robust.prior))  # whatever it held is replaced by the identity
+    shaped(maps(robust.measurement))
+    with pytest.raises(CheckpointError, match="prior.type: checkpoint 'system', model "
+                                              "'robust_system'"):  # evaluation
         load_weights(robust, path)
-    load_weights(robust, path, widen_gain=True)  # train.init_from
-    assert float(robust.robust_drive.amplitude.detach().abs().sum()) == 0
+    load_weights(robust, path, widen=True)  # train.init_from
+    assert float(maps(robust.prior).amplitude.detach().abs().sum()) == 0
+    assert float(maps(robust.measurement).amplitude.detach().abs().sum()) == 0
     with torch.no_grad():
         gap = (robust(data.measurements) - plain(data.measurements)).abs().max()
     assert float(gap) < 1e-12
-    shaped(robust.robust_innovation)
+    shaped(maps(robust.measurement))
     trained = save(robust, tmp_path / "robust.pt")
     again = robust_observer(system, seed=5, drive=4, innovation=3, **settings)
-    load_weights(again, trained, widen_gain=True)  # the same maps: loaded as they are
-    torch.testing.assert_close(again.robust_innovation.amplitude,
-                               robust.robust_innovation.amplitude, rtol=0, atol=0)
-    with pytest.raises(CheckpointError, match="robust_drive"):  # not dropped silently
-        load_weights(plain, trained, widen_gain=True)
+    load_weights(again, trained, widen=True)  # the same maps: loaded as they are
+    torch.testing.assert_close(maps(again.measurement).amplitude,
+                               maps(robust.measurement).amplitude, rtol=0, atol=0)
+    with pytest.raises(CheckpointError, match="the checkpoint's prior is 'robust_system', this "
+                                              "observer's 'system'"):  # not dropped silently
+        load_weights(plain, trained, widen=True)
+    only_prior = robust_observer(system, seed=5, drive=4, **settings)
+    with pytest.raises(CheckpointError, match="the checkpoint's measurement is 'robust', this "
+                                              "observer's 'measurement'"):
+        load_weights(only_prior, trained, widen=True)
     wider = robust_observer(system, seed=2, drive=5, innovation=3, **settings)
-    with pytest.raises(CheckpointError, match="model.robust_drive must match"):
-        load_weights(wider, trained, widen_gain=True)
+    name = prefix(wider, "prior")
+    with pytest.raises(CheckpointError, match=rf"{name}\.amplitude: checkpoint \(6, 4\), "
+                                              r"model \(6, 5\)"):
+        load_weights(wider, trained, widen=True)
 
 
 def test_bad_settings_say_what_is_wrong():
     system = RigidBody()
-    common = dict(core=None, hidden_size=4, num_layers=1)
-    inputs = rigid_observer(system).inputs
-    with pytest.raises(TypeError, match="robust_drive must be a manifold_nets.robust"):
-        ResidualObserver(system.group, 18, inputs=inputs, robust_drive=lambda r: r, **common)
-    with pytest.raises(ValueError, match="needs the prior"):
-        ResidualObserver(system.group, 18, inputs=inputs, prior=system.predict,
-                         robust_drive=RobustWeights(6), **common)
-    with pytest.raises(ValueError, match="without robust_drive leave it out"):
-        ResidualObserver(system.group, 18, inputs=inputs, prior=system.predict,
-                         prior_drive=system.compensated_drive, prior_step=system.step, **common)
-    with pytest.raises(ValueError, match="robust_innovation has 3 channels, but the observer"):
-        ResidualObserver(system.group, 18, inputs=inputs, robust_innovation=RobustWeights(3),
-                         **common)
-
-    def model(**kw):
-        return OmegaConf.structured(ModelConfig(hidden_size=4, num_layers=1, **kw))
-
-    with pytest.raises(ValueError, match="there is no model prior; set model.prior=system"):
-        build_observer(system.group, 18, 0, model(robust_drive=4), system=system)
-    with pytest.raises(ValueError, match="model.innovation is empty"):
-        build_observer(system.group, 18, 0, model(robust_innovation=4), system=system)
-
-    class OwnPrediction(RigidBody):
-        def predict(self, x, y, u):
-            return super().predict(x, y, u)
+    with pytest.raises(TypeError, match="SystemPrior needs a System, got function"):
+        RobustSystemPrior(lambda x, y, u: x)
+    with pytest.raises(ValueError, match="a robust measurement weighs the innovations of the "
+                                         "measured factors, but it names none"):
+        RobustMeasurement(18, 0, {})
+    for bad in (-1, 0, True, 2.5):
+        with pytest.raises(ValueError, match="robust system prior: width must be an integer >= 1"):
+            RobustSystemPrior(system, width=bad)
+        with pytest.raises(ValueError, match="robust measurement: width must be an integer >= 1"):
+            RobustMeasurement(18, 0, MEASURED, width=bad)
+    for bad in (0.0, -1.0, True):
+        with pytest.raises(ValueError, match="robust system prior: span must be a number"):
+            RobustSystemPrior(system, span=bad)
+        with pytest.raises(ValueError, match="robust measurement: span must be a number"):
+            RobustMeasurement(18, 0, MEASURED, span=bad)
+    with pytest.raises(ValueError, match="span must be a number"):  # refused by the map itself
+        RobustSystemPrior(system, span=math.inf)
+    with pytest.raises(ValueError, match="robust measurement: span must be a number in "
+                                         r"\[1e-12, inf\]"):
+        RobustMeasurement(18, 0, MEASURED, span=0.0)  # a finite span is a number > 0
+    # the robust measurement's channels are its factors: one map per measured factor
+    assert maps(RobustMeasurement(18, 0, {"R": (0, 9)})).channels == 1
 
     with pytest.raises(ValueError, match="OwnPrediction overrides predict"):
-        build_observer(system.group, 18, 0, model(robust_drive=4, prior="system"),
+        RobustSystemPrior(OwnPrediction())
+
+    context = {"system": system, "dim": 18, "input_dim": 0}
+    with pytest.raises(ValueError, match=r"model.prior \(robust_system\): needs \['system'\] "
+                                         r"\(pass build_observer\(\.\.\., system=system\)\)"):
+        build_piece("prior", {"type": "robust_system", "width": 4}, "model.prior")
+    with pytest.raises(ValueError, match=r"model.prior \(robust_system\): the robust system "
+                                         "prior .* OwnPrediction overrides predict"):
+        build_piece("prior", {"type": "robust_system"}, "model.prior",
+                    {**context, "system": OwnPrediction()})
+    for block, match in (
+        ({"type": "robust_system", "width": -1}, r"model.prior \(robust_system\): robust system "
+                                                 "prior: width must be an integer >= 1"),
+        ({"type": "robust_system", "span": 0.0}, r"model.prior \(robust_system\): robust system "
+                                                 "prior: span must be a number"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            build_piece("prior", block, "model.prior", context)
+    for block, match in (
+        ({"type": "robust", "width": 4}, r"model.measurement \(robust\): a robust measurement "
+                                         "weighs"),
+        ({"type": "robust", "factors": {"R": [0, 9]}, "width": True},
+         r"model.measurement \(robust\): robust measurement: width must be an integer >= 1"),
+    ):
+        with pytest.raises(ValueError, match=match):
+            build_piece("measurement", block, "model.measurement", context)
+
+
+class OwnPrediction(RigidBody):
+    """A system whose prediction is its own (a robust system prior cannot weigh its drive)."""
+
+    def predict(self, x, y, u):
+        return super().predict(x, y, u)
+
+
+def _flat(**kw):
+    return OmegaConf.structured(ModelConfig(hidden_size=4, num_layers=1, **kw))
+
+
+def test_bad_flat_settings_say_what_is_wrong():
+    """The first format's keys, translated: their errors name the piece they became."""
+    system = RigidBody()
+    with pytest.warns(FutureWarning), pytest.raises(
+        ValueError, match=r"model.measurement \(robust\): a robust measurement weighs"
+    ):
+        build_observer(system.group, 18, 0, _flat(robust_innovation=4), system=system)
+    with pytest.warns(FutureWarning), pytest.raises(
+        ValueError,
+        match=r"model.prior \(robust_system\): the robust system prior .* OwnPrediction overrides",
+    ):
+        build_observer(system.group, 18, 0, _flat(robust_drive=4, prior="system"),
                        system=OwnPrediction())
-    raw = OmegaConf.to_container(model(prior="system"))
-    for key, bad in (("robust_drive", -1), ("robust_innovation", True), ("robust_drive", 2.5)):
+    raw = OmegaConf.to_container(_flat(prior="system", innovation={"R": [0, 9]}))
+    for key, bad, piece in (("robust_drive", -1, "prior"), ("robust_innovation", -2,
+                                                            "measurement")):
         cfg = OmegaConf.create({**raw, key: bad})  # a config read from a file
-        with pytest.raises(ValueError, match=f"model.{key} must be an integer >= 0"):
+        with pytest.warns(FutureWarning), pytest.raises(ValueError, match=rf"model.{piece} "
+                                                                          r"\(robust"):
             build_observer(system.group, 18, 0, cfg, system=system)
     cfg = OmegaConf.create({**raw, "robust_drive": 2, "robust_span": 0.0})
-    with pytest.raises(ValueError, match="model.robust_span must be a number > 0"):
+    with pytest.warns(FutureWarning), pytest.raises(ValueError, match="span must be a number"):
         build_observer(system.group, 18, 0, cfg, system=system)
+
+
+def test_a_flat_robust_drive_without_the_system_prior_says_so():
+    """The first format's ``robust_drive`` weighs the system prior's drive: without
+    ``prior: system`` there is none, and the translated config must refuse it (as the first
+    format did: "there is no model prior; set model.prior=system"), not drop it."""
+    system = RigidBody()
+    with pytest.warns(FutureWarning), pytest.raises(ValueError, match="prior"):
+        build_observer(system.group, 18, 0, _flat(robust_drive=4), system=system)
 
 
 # ---------------------------------------------------------------------- per-parameter rates
@@ -271,17 +373,20 @@ def test_bad_settings_say_what_is_wrong():
 
 def test_param_groups_give_the_named_parameters_their_rate():
     obs = robust_observer(RigidBody(), drive=3, innovation=3)
-    groups = param_groups(obs, 1e-4, {"robust": 1e-2})
-    robust = {id(p) for n, p in obs.named_parameters() if n.startswith("robust")}
-    assert [g["lr_scale"] for g in groups] == [1.0, pytest.approx(100.0)]
-    assert {id(p) for p in groups[1]["params"]} == robust and len(robust) == 6
+    groups = param_groups(obs, 1e-4, MAPS)
+    robust = {id(p) for n, p in obs.named_parameters() if n.split(".")[0] in ("prior",
+                                                                              "measurement")}
+    assert [g["lr_scale"] for g in groups] == [1.0, pytest.approx(100.0), pytest.approx(100.0)]
+    assert {id(p) for g in groups[1:] for p in g["params"]} == robust and len(robust) == 6
+    assert {id(p) for p in groups[1]["params"]} == {id(p) for p in obs.prior.parameters()}
     assert not robust & {id(p) for p in groups[0]["params"]}
     assert sum(len(g["params"]) for g in groups) == len(list(obs.parameters()))
     assert len(param_groups(obs, 1e-4, {})) == 1
     with pytest.raises(ValueError, match=r"param_lr\['gain'\] names no parameter.*'core'"):
         param_groups(obs, 1e-4, {"gain": 1e-2})
-    with pytest.raises(ValueError, match="starts with both 'robust' and 'robust_drive'"):
-        param_groups(obs, 1e-4, {"robust": 1e-2, "robust_drive": 1e-3})
+    name = prefix(obs, "prior")
+    with pytest.raises(ValueError, match=f"starts with both 'prior' and '{name}'"):
+        param_groups(obs, 1e-4, {"prior": 1e-2, name: 1e-3})
     for bad in (0.0, -1e-3, math.inf, True):
         with pytest.raises(ValueError, match=r"param_lr\['robust'\] must be a positive"):
             check_settings(TrainSettings(param_lr={"robust": bad}))
@@ -295,23 +400,27 @@ def test_each_group_trains_at_its_rate_on_the_same_schedule(tmp_path):
     torch.manual_seed(0)
     obs = robust_observer(system, drive=3, innovation=3).float()
     settings = TrainSettings(epochs=2, batch_size=4, lr=1e-3, schedule="cosine", progress=False,
-                             param_lr={"robust": 5e-2}, eval_batch_size=8)
+                             param_lr={k: 5e-2 for k in MAPS}, eval_batch_size=8)
     fit(obs, data, data, settings, out_dir=tmp_path)
     last = load_checkpoint(tmp_path / "checkpoints" / "last.pt")
     rates = [g["lr"] for g in last["optimizer"]["param_groups"]]
-    assert rates == pytest.approx([5e-4, 2.5e-2])  # epoch 2 of 2 on the half cosine: lr / 2
-    assert float(obs.robust_drive.amplitude.detach().abs().max()) > 1e-3  # it moved
+    assert rates == pytest.approx([5e-4, 2.5e-2, 2.5e-2])  # epoch 2 of 2 on the half cosine
+    assert float(maps(obs.prior).amplitude.detach().abs().max()) > 1e-3  # it moved
 
 
 def test_the_train_command_takes_them_and_load_observer_rebuilds_them(tmp_path):
     observer, system, cfg = train_tiny_and_load(
-        "paper_cpu_prior", tmp_path, "model.centering=0.85", "model.robust_drive=4",
-        "model.robust_innovation=4", "++train.param_lr={robust:1.0e-2}",
+        "paper_cpu_prior", tmp_path,
+        *block_overrides(
+            "++train.param_lr={prior:1.0e-2,measurement:1.0e-2}",
+            measurement="{type:robust,factors:{R:[0,9],p:[9,12]},width:4}",
+            prior="{type:robust_system,width:4}", head="{type:centred,c:0.85}",
+        ),
     )
-    assert observer.robust_drive.signature() == {"channels": 6, "width": 4, "span": 4.0}
-    assert observer.robust_innovation.channels == 2
-    assert cfg.train.param_lr == {"robust": 1.0e-2}
-    assert float(observer.robust_drive.amplitude.detach().abs().max()) > 0  # trained
+    assert maps(observer.prior).signature() == {"channels": 6, "width": 4, "span": 4.0}
+    assert maps(observer.measurement).channels == 2
+    assert cfg.train.param_lr == {"prior": 1.0e-2, "measurement": 1.0e-2}
+    assert float(maps(observer.prior).amplitude.detach().abs().max()) > 0  # trained
     data = simulate(system, n=2, t=8, sigma=0.1)
     with torch.inference_mode():
         est = observer(data.measurements)

@@ -6,6 +6,7 @@ settings say what is wrong; the train command reads it."""
 
 from __future__ import annotations
 
+import functools
 import json
 import math
 
@@ -13,7 +14,7 @@ import pytest
 import torch
 
 from groups import SO3
-from manifold_nets import TrainSettings
+from manifold_nets import GRUCore, TrainSettings
 from manifold_nets.losses import embedding_log_mse, embedding_mse
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.training import TrainingDiverged, check_settings, fit, validation_loss
@@ -26,7 +27,7 @@ G = SO3()
 def test_the_validation_loss_leaves_the_first_steps_out(loss, fn):
     data = so3_walk(6, 12, 1)
     torch.manual_seed(0)
-    model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
+    model = ResidualObserver(G, 9, functools.partial(GRUCore, hidden_size=8, num_layers=1))
     with torch.no_grad():
         est = model(data.measurements)
     for skip in (1, 5):
@@ -49,7 +50,7 @@ def poisoned(n, t, seed, upto):
 def test_the_skipped_steps_reach_neither_the_loss_nor_its_gradient(tmp_path, tbptt):
     train, val = poisoned(8, 12, 1, upto=3), poisoned(4, 12, 2, upto=3)
     torch.manual_seed(0)
-    model = ResidualObserver(G, 9, hidden_size=8, num_layers=1)
+    model = ResidualObserver(G, 9, functools.partial(GRUCore, hidden_size=8, num_layers=1))
     settings = dict(epochs=2, batch_size=4, lr=1e-2, progress=False, tbptt=tbptt)
     res = fit(model, train, val, TrainSettings(skip_steps=3, **settings), out_dir=tmp_path / "a")
     assert all(math.isfinite(row["val_loss"]) for row in res.history)

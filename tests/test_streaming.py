@@ -5,7 +5,9 @@ The rigid body of the examples on toy sizes (a few sequences of a few steps) and
 
 from __future__ import annotations
 
+import functools
 import json
+import sys
 from pathlib import Path
 
 import pytest
@@ -13,9 +15,9 @@ import torch
 from hydra import compose, initialize_config_dir
 
 import manifold_nets.cli.train as train_command
-from manifold_nets import SimulatedStream, TrainSettings
+from manifold_nets import GRUCore, SimulatedStream, TrainSettings
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.observer import ResidualObserver
+from manifold_nets.observer import GroupUpdate, ResidualObserver
 from manifold_nets.streaming import DataStream, stream_seed
 from manifold_nets.training import fit
 from manifold_nets_examples.rigid_body import RigidBody
@@ -43,7 +45,8 @@ class RecordingStream(SimulatedStream):
 def make_model(seed=0) -> ResidualObserver:
     torch.manual_seed(seed)
     return ResidualObserver(
-        SYSTEM.group, SYSTEM.measurement_dim, hidden_size=8, num_layers=1, update=BIASES
+        SYSTEM.group, SYSTEM.measurement_dim,
+        functools.partial(GRUCore, hidden_size=8, num_layers=1), update=GroupUpdate(BIASES),
     )
 
 
@@ -180,7 +183,8 @@ def test_a_tiny_run_with_train_stream_trains_on_the_stream(tmp_path, monkeypatch
         made.append(RecordingStream(*args, **kwargs))
         return made[-1]
 
-    monkeypatch.setattr(train_command, "SimulatedStream", recording)
+    # the module whose run() makes the stream (the command's tasks, wherever they live)
+    monkeypatch.setattr(sys.modules[train_command.run.__module__], "SimulatedStream", recording)
     cfg = _compose(tmp_path / "data", "train.stream=true", "train.epochs=2")
     metrics = train_command.run(cfg, tmp_path / "run")
     (stream,) = made

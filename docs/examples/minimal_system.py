@@ -17,6 +17,7 @@ Run it with ``python docs/examples/minimal_system.py``.
 
 from __future__ import annotations
 
+import functools
 import tempfile
 
 import torch
@@ -24,6 +25,7 @@ import torch
 from groups import SO2
 from manifold_nets import (
     DatasetConfig,
+    GRUCore,
     ResidualObserver,
     System,
     TrainSettings,
@@ -110,7 +112,8 @@ def main() -> None:
 
     # the generic observer on SO(2) (training for real: docs/observer.md, docs/examples_systems.md)
     torch.manual_seed(0)
-    observer = ResidualObserver(system.group, system.measurement_dim, hidden_size=32, num_layers=1)
+    core = functools.partial(GRUCore, hidden_size=32, num_layers=1)  # the paper's: 512 x 2
+    observer = ResidualObserver(system.group, system.measurement_dim, core)
     with tempfile.TemporaryDirectory() as out:
         settings = TrainSettings(epochs=5, batch_size=16, lr=3e-3, grad_clip=1.0, progress=False)
         fit(observer, data.split("train"), data.split("val"), settings, out_dir=out)

@@ -2,7 +2,7 @@
 
 ::
 
-    python -m manifold_nets_examples.broad.apply examples/broad/pretrained trial.mat --out q.csv
+    python -m manifold_nets_examples.broad.apply zoo:broad/attitude trial.mat --out q.csv
 
 ``trial.mat`` needs ``imu_gyr``, ``imu_acc``, ``imu_mag`` and ``sampling_rate`` as BROAD's files
 hold them (``opt_quat`` and ``movement`` are optional: without a reference nothing is scored);

@@ -3,17 +3,21 @@
 The observer is :class:`manifold_nets.ResidualObserver` on ``SO(3)`` (the orientation only: the
 gyro bias is not in the state, the recurrent core carries what it needs of it) reading the
 layout of :mod:`.data` and :mod:`.simulator`: ``y_{k+1} = (acc / G0, mag / M0)`` (6) and
-``u_k = gyr`` (3, rad/s). On top of the paper's observer it uses three of the framework's
-extensions (:mod:`manifold_nets.inputs`), because at 285.7 Hz the paper's form would have the
-network re-learn integration to 1e-4 rad per step:
+``u_k = gyr`` (3, rad/s). On top of the paper's observer it uses three of the framework's pieces
+(:mod:`manifold_nets.observer`), because at 285.7 Hz the paper's form would have the network
+re-learn integration to 1e-4 rad per step:
 
-* ``propagate = {x: [6, 9]}``: the kinematic prior ``R^- = R exp(dt gyr)``; the network outputs
-  the correction only (its head starts at zero, so the untrained observer is dead reckoning);
-* ``rotated = {x: [[0, 3], [3, 6]]}``: the core also reads ``R^- acc`` and ``R^- mag``, the
-  readings in the world frame, where their error against "up" and "north" is linear;
-* ``output_scale = 0.01``: corrections are ~1e-3 rad per step, so the head's output is scaled
-  down (the optimiser's steps on its weights stay in proportion);
-* ``updates = {x: left}`` (``x``: the one factor of a group that is not a product): the correction is a world-frame rotation, ``R = exp(v) R^-``.
+* the kinematic prior, ``prior: {type: kinematic, velocities: {x: [6, 9]}}``: ``R^- = R exp(dt
+  gyr)``; the network outputs the correction only (its head starts at zero, so the untrained
+  observer is dead reckoning);
+* the rotated feature, ``{type: rotated, vectors: {x: [[0, 3], [3, 6]]}}``: the core also reads
+  ``R^- acc`` and ``R^- mag``, the readings in the world frame, where their error against "up"
+  and "north" is linear;
+* an output scale, ``scales: [{type: output, scale: 0.01}]``: corrections are ~1e-3 rad per
+  step, so the head's output is scaled down (the optimiser's steps on its weights stay in
+  proportion);
+* ``updates = {x: left}`` (``x``: the one factor of a group that is not a product): the
+  correction is a world-frame rotation, ``R = exp(v) R^-``.
 
 :func:`measured_start` starts an estimate from the first accelerometer and magnetometer sample
 (TRIAD); :class:`RandomMounting` is the augmentation "the sensor mounted differently": one
@@ -55,26 +59,23 @@ def model_config(
     return ModelConfig(
         hidden_size=hidden_size,
         num_layers=num_layers,
-        output_scale=output_scale,
         updates={"x": "left"},
-        rotated={"x": [[0, 3], [3, 6]]},
-        propagate={"x": [6, 9]},
+        prior={"type": "kinematic", "velocities": {"x": [6, 9]}},  # the gyroscope, integrated
+        features=[
+            "embedding", "readings", {"type": "rotated", "vectors": {"x": [[0, 3], [3, 6]]}},
+        ],
+        scales=[{"type": "output", "scale": output_scale}],
     )
 
 
 def make_observer(system: BroadSimulator, model: ModelConfig, seed: int = 0) -> ResidualObserver:
-    """The observer of ``model`` for ``system``'s layout, its head zeroed (the untrained observer
-    integrates the gyroscope and corrects nothing)."""
+    """The observer of ``model`` for ``system``'s layout; its head starts at zero (the untrained
+    observer integrates the gyroscope and corrects nothing)."""
     torch.manual_seed(seed)
-    obs = build_observer(
+    return build_observer(
         system.group, system.measurement_dim, system.input_dim, model, dt=system.dt,
         system=system,
     )
-    head = getattr(obs.core, "head", None)
-    if isinstance(head, torch.nn.Linear):
-        torch.nn.init.zeros_(head.weight)
-        torch.nn.init.zeros_(head.bias)
-    return obs
 
 
 def measured_start(system: BroadSimulator):

@@ -38,7 +38,6 @@ import yaml
 from manifold_nets import TrainSettings, fit
 from manifold_nets.atomic import write_text_atomic
 from manifold_nets.checkpoint import load_weights
-from manifold_nets.data import TrajectoryDataset
 
 from .data import read_trials, split_trials, trials_to_dataset
 from .learning import RandomMounting, make_observer, model_config, near_truth_start

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 import torch
 
 from ..base import LieGroup
-from .strategies import GRID_SIZE, elements, grid_elements, grid_tangents, seeds, tangent_vectors
+from .strategies import elements, grid_elements, grid_tangents, seeds, tangent_vectors
 
 __all__ = [
     "Tolerances",

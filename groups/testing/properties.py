@@ -3,8 +3,7 @@
 ``case`` is a :class:`~groups.testing.comparison.Case` (the group, dtype and batch shape, and the
 comparisons); ``data`` is hypothesis' ``st.data()``, or None on the deterministic grid and for
 :data:`DETERMINISTIC` properties, and is only passed back to ``case.x``/``case.v``/``case.seed``.
-:data:`PROPERTIES` lists them in the order ``check_group`` runs them. In the bodies,
-``ne = len(group.element_shape)`` is the number of trailing dimensions of an element.
+:data:`PROPERTIES` lists them in the order ``check_group`` runs them.
 """
 
 from __future__ import annotations
@@ -111,7 +110,7 @@ def _unchanged(before: torch.Tensor, after: torch.Tensor) -> bool:
 
 def identity(c: Case, data) -> None:
     """``e x = x e = x``, ``e^-1 = e``, ``exp(0) = e``, ``log(e) = 0``, ``rminus(x, x) = 0``."""
-    G, dt, bs, ne = c.group, c.dtype, c.batch_shape, len(c.group.element_shape)
+    G, dt, bs = c.group, c.dtype, c.batch_shape
     x = c.x(data, "x")
     e = G.identity(bs, dtype=dt)
     zero = torch.zeros(*bs, G.tangent_dim, dtype=dt)
@@ -128,7 +127,7 @@ def identity(c: Case, data) -> None:
 
 def inverse(c: Case, data) -> None:
     """``x x^-1 = x^-1 x = e``, ``(x^-1)^-1 = x``, ``(x y)^-1 = y^-1 x^-1``."""
-    G, dt, bs, ne = c.group, c.dtype, c.batch_shape, len(c.group.element_shape)
+    G, dt, bs = c.group, c.dtype, c.batch_shape
     x, y = c.x(data, "x"), c.x(data, "y")
     e = G.identity(bs, dtype=dt)
     xi, yi = G.inverse(x), G.inverse(y)
@@ -149,7 +148,7 @@ def inverse(c: Case, data) -> None:
 
 def associativity(c: Case, data) -> None:
     """``(x y) z = x (y z)``."""
-    G, ne = c.group, len(c.group.element_shape)
+    G = c.group
     x, y, z = c.x(data, "x"), c.x(data, "y"), c.x(data, "z")
     s = element_magnitude(G, x) * element_magnitude(G, y) * element_magnitude(G, z)
     c.close_elements(
@@ -161,7 +160,7 @@ def associativity(c: Case, data) -> None:
 
 def exp_log(c: Case, data) -> None:
     """``exp(log(x)) = x`` for every element, angle pi included."""
-    G, ne = c.group, len(c.group.element_shape)
+    G = c.group
     x = c.x(data, "x")
     c.close_elements("exp(log(x)) == x", G.exp(G.log(x)), x,
             inputs={"x": x, "log(x)": G.log(x)})
@@ -220,7 +219,7 @@ def matrix_exp(c: Case, data) -> None:
 
 def adjoint(c: Case, data) -> None:
     """``x exp(v) x^-1 = exp(Ad_x v)``, ``Ad_{xy} = Ad_x Ad_y``, ``Ad_x Ad_{x^-1} = I``."""
-    G, ne, k = c.group, len(c.group.element_shape), c.group.tangent_dim
+    G, k = c.group, c.group.tangent_dim
     x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
     ad_x = G.adjoint(x)
     c.shape("adjoint(x)", ad_x, (k, k))
@@ -294,7 +293,7 @@ def _embedding_rejects(c: Case, data, z: torch.Tensor) -> None:
 def embedding(c: Case, data) -> None:
     """The embedding round trips, ``from_embedding`` rejects what is off the group, and a group
     declaring ``embedding_is_flat`` embeds an element as itself flattened."""
-    G, ne = c.group, len(c.group.element_shape)
+    G = c.group
     x = c.x(data, "x")
     z = G.embed(x)
     c.shape("embed(x)", z, (G.embedding_dim,))
@@ -312,7 +311,7 @@ def embedding(c: Case, data) -> None:
 
 def rplus_rminus(c: Case, data) -> None:
     """``rplus``, ``between``, ``rminus`` and ``distance`` agree with compose, exp and log."""
-    G, ne = c.group, len(c.group.element_shape)
+    G = c.group
     x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
     xi = G.inverse(x)
     sx = element_magnitude(G, x) * element_magnitude(G, xi)
@@ -408,7 +407,6 @@ def batched_vs_looped(c: Case, data) -> None:
     """Batched operations equal the same operations applied element by element."""
     G, bs = c.group, c.batch_shape
     x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
-    ne = len(G.element_shape)
     # name -> (operation, number of trailing dimensions of its output; None: an element)
     ops: dict[str, tuple[Callable[..., torch.Tensor], int | None]] = {
         "compose(x, y)": (lambda x_, y_, v_: G.compose(x_, y_), None),
@@ -439,7 +437,7 @@ def batched_vs_looped(c: Case, data) -> None:
 
 def broadcasting(c: Case, data) -> None:
     """compose and rplus broadcast ``(3, 1)`` with ``(1, 2)``, and ``()`` with the batch."""
-    G, ne = c.group, len(c.group.element_shape)
+    G = c.group
     el = tuple(G.element_shape)
     x = c.x(data, "x (3, 1)", batch_shape=(3, 1))
     y = c.x(data, "y (1, 2)", batch_shape=(1, 2))

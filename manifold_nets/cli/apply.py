@@ -16,8 +16,9 @@ string (the observer's signature, the checkpoint, the data file). Read it back w
 The sequences are run ``--batch-size`` at a time and each batch ``--chunk`` steps at a time
 (the observer's state carried over), with a progress bar on a terminal.
 
-The shipped systems (``examples``) are imported here so that their runs load; a run of your own
-system: ``python -c "import my_system; from manifold_nets.cli.apply import main; main()" ...``.
+The run's system is found by the registry: the project's example systems and those an installed
+package declares as entry points (:mod:`manifold_nets.plugins`) load with no import by hand; the
+run may be a zoo entry, ``zoo:rigid_body/nominal``.
 """
 
 from __future__ import annotations
@@ -37,16 +38,9 @@ from manifold_nets.loading import load_observer
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.progress import progress
 
-__all__ = ["apply_observer", "main", "register_shipped_systems", "run"]
+__all__ = ["apply_observer", "main", "run"]
 
 log = logging.getLogger(__name__)
-
-
-def register_shipped_systems() -> None:
-    """Imports the shipped example systems, which registers them (``System.__init_subclass__``)."""
-    import manifold_nets_examples.attitude.system  # noqa: F401
-    import manifold_nets_examples.planar.system  # noqa: F401
-    import manifold_nets_examples.rigid_body.system  # noqa: F401
 
 
 def apply_observer(
@@ -89,7 +83,6 @@ def run(argv: Sequence[str] | None = None) -> Path:
         p.error("--batch-size and --chunk must be positive")
     if a.threads:
         torch.set_num_threads(a.threads)
-    register_shipped_systems()
     observer, system, _ = load_observer(a.model)
     data = load_dataset(a.data, group=system.group)
     log.info("%s: %d sequences of %d steps", a.data, len(data), data.length)

@@ -21,15 +21,15 @@ def _describe(t) -> str:
 
 def check_sequences(obs, measurements, inputs) -> tuple[torch.Tensor, torch.Tensor]:
     """``(yu, ys)``, each ``(T, N, l + m)``: network dtype and state dtype."""
-    l, m = obs.measurement_dim, obs.input_dim
+    dim, m = obs.measurement_dim, obs.input_dim
     if not isinstance(measurements, torch.Tensor) or not measurements.is_floating_point():
         raise TypeError(
-            f"measurements must be a floating-point torch.Tensor (N, T, {l}), got "
+            f"measurements must be a floating-point torch.Tensor (N, T, {dim}), got "
             f"{_describe(measurements)}."
         )
-    if measurements.dim() != 3 or measurements.shape[-1] != l:
+    if measurements.dim() != 3 or measurements.shape[-1] != dim:
         raise ValueError(
-            f"measurements must have shape (N, T, measurement_dim={l}), got "
+            f"measurements must have shape (N, T, measurement_dim={dim}), got "
             f"{tuple(measurements.shape)}; is this data from the system the observer was built for?"
         )
     n, t = measurements.shape[:2]

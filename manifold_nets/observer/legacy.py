@@ -29,6 +29,19 @@ FLAT_KEYS: dict[str, Any] = {
     "centering": 0.0, "centering_ramp": 0, "centering_factors": {}, "step_decay": {},
     "robust_drive": 0, "robust_innovation": 0, "robust_span": 4.0, "output_scale": 1.0,
 }
+#: Where each flat key went: the block that holds it now.
+BLOCK_OF = {
+    "innovation": "model.measurement.factors", "relative_only": "the drop of model.features' "
+    "embedding and readings", "rotated": "a {type: rotated, vectors: ...} feature", "propagate":
+    "model.prior={type: kinematic, velocities: ...}", "innovation_frame": "a {type: "
+    "framed_innovation, frames: ...} feature", "gain": "model.head={type: gain}", "gain_offset":
+    "model.head.offset", "centering": "model.head={type: centred, c: ...}", "centering_ramp":
+    "model.head.ramp", "centering_factors": "model.head.factors", "step_decay": "a {type: "
+    "step_decay, factors: ...} entry of model.scales", "robust_drive": "model.prior={type: "
+    "robust_system, width: ...}", "robust_innovation": "model.measurement={type: robust, width: "
+    "...}", "robust_span": "the span of the robust prior or measurement", "output_scale": "a "
+    "{type: output, scale: ...} entry of model.scales",
+}
 #: Flat options that were removed, and why.
 REMOVED = {
     "clock": "clock inputs changed nothing in two ablations",
@@ -151,7 +164,7 @@ def flat_signature(observer) -> dict:
         if head.get("factors"):
             out["centering_factors"] = head["factors"]
     if prior["type"] == "robust_system":
-        out["robust_drive"] = {"channels": observer.prior.weights.channels,
+        out["robust_drive"] = {"channels": observer.prior.robust.channels,
                                "width": prior["width"], "span": prior["span"]}
     if m["type"] == "robust":
         out["robust_innovation"] = {"channels": len(m["factors"]), "width": m["width"],
@@ -161,7 +174,7 @@ def flat_signature(observer) -> dict:
 
 def state_from_v1(state: dict) -> dict:
     """A version-1 ``state_dict`` with today's names (the robust weights moved into their pieces)."""
-    rename = {"robust_drive.": "prior.weights.", "robust_innovation.": "measurement.weights."}
+    rename = {"robust_drive.": "prior.robust.", "robust_innovation.": "measurement.robust."}
     out = {}
     for key, value in state.items():
         for old, new in rename.items():

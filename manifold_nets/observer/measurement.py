@@ -136,10 +136,10 @@ class RobustMeasurement(Measurement):
             )
         width = check_int("robust measurement: width", width, 1)
         span = check_number("robust measurement: span", span, 1e-12, float("inf"))
-        self.weights = RobustWeights(len(self.factors), width, span)
+        self.robust = RobustWeights(len(self.factors), width, span)
 
     def settings(self) -> dict:
-        return {**super().settings(), "width": self.weights.width, "span": self.weights.span}
+        return {**super().settings(), "width": self.robust.width, "span": self.robust.span}
 
     def view(self, x, yu, measured) -> StepView:
         nu = [
@@ -147,7 +147,7 @@ class RobustMeasurement(Measurement):
             for (f, xs, _), m in zip(self.spans, measured)
         ]
         norms = torch.stack([safe_norm(n) for n in nu], dim=-1)
-        w = self.weights(norms.to(yu.dtype)).to(norms.dtype)
+        w = self.robust(norms.to(yu.dtype)).to(norms.dtype)
         nu = [n * w[:, i : i + 1] for i, n in enumerate(nu)]
         yu = yu.clone()
         for (f, xs, ys), n in zip(self.spans, nu):
@@ -159,6 +159,6 @@ class RobustMeasurement(Measurement):
         """From a plain measurement of the same factors: the weights start as the identity."""
         if old is not None and old.get("type") == "robust":
             return state
-        new = RobustWeights(self.weights.channels, self.weights.width, self.weights.span)
-        new = new.to(self.weights.amplitude)
-        return {**state, **{f"{prefix}weights.{k}": v for k, v in new.state_dict().items()}}
+        new = RobustWeights(self.robust.channels, self.robust.width, self.robust.span)
+        new = new.to(self.robust.amplitude)
+        return {**state, **{f"{prefix}robust.{k}": v for k, v in new.state_dict().items()}}

@@ -97,24 +97,24 @@ class RobustSystemPrior(SystemPrior):
             )
         width = check_int("robust system prior: width", width, 1)
         span = check_number("robust system prior: span", span, 1e-12, float("inf"))
-        self.weights = RobustWeights(system.drive_dim, width, span)
+        self.robust = RobustWeights(system.drive_dim, width, span)
 
     def settings(self):
-        return {"width": self.weights.width, "span": self.weights.span}
+        return {"width": self.robust.width, "span": self.robust.span}
 
     def forward(self, x, yu, ys):
         x, y, u = self._yu(x, ys)
         d = self.system.compensated_drive(x, y, u)
-        w = self.weights(d.abs().to(yu.dtype)).to(d.dtype)  # d_i <- w_i(|d_i|) d_i
+        w = self.robust(d.abs().to(yu.dtype)).to(d.dtype)  # d_i <- w_i(|d_i|) d_i
         return self.system.step(x, w * d).flatten(1)
 
     def widen(self, state, prefix, old):
         """From the plain system prior: the weights start as the identity."""
         if old is not None and old.get("type") == self.name:
             return state
-        new = RobustWeights(self.weights.channels, self.weights.width, self.weights.span)
-        new = new.to(self.weights.amplitude)
-        return {**state, **{f"{prefix}weights.{k}": v for k, v in new.state_dict().items()}}
+        new = RobustWeights(self.robust.channels, self.robust.width, self.robust.span)
+        new = new.to(self.robust.amplitude)
+        return {**state, **{f"{prefix}robust.{k}": v for k, v in new.state_dict().items()}}
 
 
 class KinematicPrior(Prior):

@@ -24,7 +24,8 @@ class StepScale(Piece):
 
 
 class OutputScale(StepScale):
-    """``v <- s v``, ``s > 0``."""
+    """``v <- s v``, ``s > 0``. (``train.init_from`` from another scale rescales the head's output
+    rows, :mod:`~manifold_nets.observer.widen`.)"""
 
     name = "output"
 
@@ -37,18 +38,6 @@ class OutputScale(StepScale):
 
     def forward(self, v, d=None):
         return v * self.scale
-
-    def widen(self, state, prefix, old):
-        """From an observer without it (scale 1): its head's output rows are divided by ``s``,
-        so the observer computes what that one did."""
-        before = 1.0 if old is None else float(old.get("scale", 1.0))
-        if before == self.scale:
-            return state
-        ratio = before / self.scale
-        return {
-            k: (v * ratio if k in ("core.head.weight", "core.head.bias") else v)
-            for k, v in state.items()
-        }
 
 
 class StepDecay(StepScale):

@@ -39,13 +39,54 @@ def widen_state(observer, state: dict, found: dict) -> dict:
             _same(f"core.{key}", fc.get(key), oc.get(key))
     state = _widen_features(observer, dict(state), list(found.get("features", [])))
     pieces = observer.pieces()
+    _only_adds("prior", _base(found.get("prior")), _base(own["prior"]))
+    _only_adds("head", _inner(found.get("head")), _inner(own["head"]))
+    _only_adds("measurement", _base(fm), _base(om))
+    old_scales = {s.get("type"): s for s in found.get("scales", [])}
+    gone = sorted(set(old_scales) - {s.name for s in observer.scales} - {"output"})
+    if gone:
+        raise ValueError(f"the checkpoint's scales {gone} are not in this observer")
     state = pieces["measurement"].widen(state, "measurement.", fm)
     state = pieces["prior"].widen(state, "prior.", found.get("prior"))
     state = pieces["head"].widen(state, "head.", found.get("head"))
-    old_scales = {s.get("type"): s for s in found.get("scales", [])}
     for i, scale in enumerate(observer.scales):
-        state = scale.widen(state, f"scales.{i}.", old_scales.get(scale.name))
-    return state
+        if scale.name != "output":
+            state = scale.widen(state, f"scales.{i}.", old_scales.get(scale.name))
+    return _rescale(state, old_scales.get("output"), own)
+
+
+#: What a piece of the checkpoint may become (adding weights that start as the identity).
+_WIDENS = {"system": "robust_system", "measurement": "robust", "plain": "gain"}
+
+
+def _base(sig: dict | None) -> str:
+    return (sig or {}).get("type", "none")
+
+
+def _inner(sig: dict | None) -> str:
+    """A head's type less a centring (which adds no weight): ``plain`` or ``gain``."""
+    sig = sig or {"type": "plain"}
+    return sig.get("inner", {"type": "plain"})["type"] if sig.get("type") == "centred" else sig["type"]
+
+
+def _only_adds(kind: str, old: str, new: str) -> None:
+    if old != new and _WIDENS.get(old) != new:
+        raise ValueError(
+            f"the checkpoint's {kind} is {old!r}, this observer's {new!r}: that changes what the "
+            "trained observer computes (only robust weights or a gain can be added)"
+        )
+
+
+def _rescale(state: dict, old: dict | None, own: dict) -> dict:
+    """An output scale changed (or added, or dropped): the head's rows rescaled so that ``v`` is
+    what it was (``v = s T(z)``)."""
+    before = 1.0 if old is None else float(old.get("scale", 1.0))
+    after = next((float(s["scale"]) for s in own["scales"] if s["type"] == "output"), 1.0)
+    if before == after:
+        return state
+    ratio = before / after
+    return {k: (v * ratio if k in ("core.head.weight", "core.head.bias") else v)
+            for k, v in state.items()}
 
 
 def _widen_features(observer, state: dict, old: list[dict]) -> dict:
