@@ -1,16 +1,20 @@
 """Robust weights on a trained observer: learned ones taken away, and Huber's set by hand.
 
-The observer (a run folder or a shipped one) rolls over ``--sequences`` new sequences of 1000
-steps of its own system, or of another run's (``--system-of``: e.g. a nominal observer on the
-outliers' system), seed 1 (for ``mismatch_outliers`` the sequences of
-``bench_outlier_filters.py``), at each sigma, next to the nominal EKF on the same sequences, in
-these forms (docs/comparison.md, "Learned robust weights"):
+The observer (a zoo entry, a run folder or a checkpoint; default ``zoo:rigid_body/outliers``)
+rolls over ``--sequences`` new sequences of 1000 steps of its own system, or of another
+observer's (``--system-of``: e.g. ``zoo:rigid_body/nominal`` on ``zoo:rigid_body/outliers``'
+system), seed 1 (for the outliers' system the sequences of ``bench_outlier_filters.py``), at each
+sigma, next to the nominal EKF on the same sequences, in these forms (docs/results.md, "Model
+mismatch"):
 
 * as trained;
-* if it has learned robust weights (``model.robust_drive``, ``model.robust_innovation``): each
-  map, then both, set back to the identity (what they add);
+* if it has learned robust weights (``observer.prior.robust`` of a
+  :class:`~manifold_nets.observer.RobustSystemPrior`, ``observer.measurement.robust`` of a
+  :class:`~manifold_nets.observer.RobustMeasurement`): each map, then both, set back to the
+  identity (what they add);
 * Huber's weights set by hand, ``w(r) = min(1, c / r)``, in place of the maps (the observer
-  widened with them if it has none): on the drive the prior steps with (``--drive-bound``: a
+  widened with them if it has none: its system prior and measurement rebuilt robust, the weights
+  copied, the new maps the identity): on the drive the prior steps with (``--drive-bound``: a
   bias-corrected reading clipped to ``|d_i| <= c``, the paper's motion keeps ``|Omega|, |v| <=
   1``), on the innovation (``--innovation-bound``: its norm clipped), and both. Told the box and
   a threshold, these are not learned figures: they say what the two weights can do with no
@@ -19,10 +23,10 @@ these forms (docs/comparison.md, "Learned robust weights"):
 It also draws each learned weight function over ``[0, --span]`` (``--plot``), and with
 ``--timing`` measures what the maps cost: the rollout of 200 sequences of 1000 steps
 (``torch.inference_mode``) and a training step (forward, backward, 32 sequences of 200 steps) with
-the maps and with them removed, interleaved over ``--reps`` repetitions on one thread; the ratio
-of medians::
+the maps and with them removed (the plain system prior and measurement, the same weights),
+interleaved over ``--reps`` repetitions on one thread; the ratio of medians::
 
-    python benchmarks/bench_robust_weights.py RUN --sigmas 0.1 0.3 0.5 [--sequences 200] \
+    python benchmarks/bench_robust_weights.py [RUN] --sigmas 0.1 0.3 0.5 [--sequences 200] \
         [--system-of RUN2] [--drive-bound 1.0] [--innovation-bound 0.5] [--out FILE] [--plot FILE] \
         [--timing] [--reps 5]
     # about 30 s per sigma on one core
@@ -36,14 +40,21 @@ from pathlib import Path
 
 import torch
 
-import manifold_nets_examples.rigid_body  # noqa: F401  (registers the systems)
-from manifold_nets import build_observer, load_observer
-from manifold_nets.checkpoint import load_weights
+from manifold_nets import load_observer
 from manifold_nets.evaluation import evaluate
-from manifold_nets.robust import RobustWeights
+from manifold_nets.observer import (
+    Measurement,
+    ResidualObserver,
+    RobustMeasurement,
+    RobustSystemPrior,
+    RobustWeights,
+    SystemPrior,
+)
 from manifold_nets_examples.rigid_body.filters import RigidBodyEKF
 
-MAPS = ("robust_drive", "robust_innovation")
+# the learned maps: label -> the piece that holds it (``observer.<piece>.robust``)
+MAPS = {"drive": "prior", "innovation": "measurement"}
+_ROBUST = {"drive": RobustSystemPrior, "innovation": RobustMeasurement}
 
 
 class HuberWeights(RobustWeights):
@@ -57,24 +68,61 @@ class HuberWeights(RobustWeights):
         return (self.bound / r.clamp(min=1e-30)).clamp(max=1.0)
 
 
+def learned_maps(obs: ResidualObserver) -> list[str]:
+    """Which of ``MAPS`` the observer has learned weights for."""
+    return [n for n, piece in MAPS.items() if isinstance(getattr(obs, piece), _ROBUST[n])]
+
+
+def rebuilt(obs: ResidualObserver, robust: bool, width: int = 1) -> ResidualObserver:
+    """``obs`` with its system prior and measurement robust (``robust``: the maps it lacks new,
+    the identity, of ``width`` steps) or plain (its maps dropped), every other weight copied."""
+    m, prior = obs.measurement, obs.prior
+    if not isinstance(prior, SystemPrior):
+        raise SystemExit(
+            f"the observer's prior is {type(prior).__name__}: the drive's weights need the "
+            "system's prior (model prior: {type: system})."
+        )
+    if robust:
+        if not isinstance(m, RobustMeasurement):
+            m = RobustMeasurement(m.dim, m.input_dim, m.factors, width=width)
+        if not isinstance(prior, RobustSystemPrior):
+            prior = RobustSystemPrior(prior.system, width=width)
+    else:
+        m = Measurement(m.dim, m.input_dim, m.factors)
+        prior = SystemPrior(prior.system)
+    new = ResidualObserver(
+        obs.group, m, copy.deepcopy(obs.core), update=copy.deepcopy(obs.update), prior=prior,
+        features=copy.deepcopy(list(obs.features)), head=copy.deepcopy(obs.head),
+        scales=copy.deepcopy(list(obs.scales)),
+    ).to(obs.device)
+    state = new.state_dict()
+    mine = {k: v for k, v in obs.state_dict().items() if k in state}
+    dropped = set(obs.state_dict()) - set(mine)
+    if robust and dropped:
+        raise RuntimeError(f"widening dropped weights: {sorted(dropped)}")
+    new.load_state_dict({**state, **mine})
+    return new.eval()
+
+
 def with_maps(run: str):
-    """The observer of ``run`` with both maps (its own, or new ones: the identity) and its
-    system."""
-    obs, system, cfg = load_observer(run)
-    if all(getattr(obs, name) is not None for name in MAPS):
-        return obs, system
-    model = copy.deepcopy(cfg.model)
-    for name in MAPS:
-        model[name] = model[name] or 1
-    wide = build_observer(system.group, system.measurement_dim, system.input_dim, model,
-                          system=system, dt=getattr(system, "dt", None))
-    load_weights(wide, Path(run), widen_gain=True)
-    return wide.eval(), system
+    """The observer of ``run`` with both maps (its own, or new ones: the identity), its system
+    and which maps it learned."""
+    obs, system, _ = load_observer(run)
+    learned = learned_maps(obs)
+    if len(learned) == len(MAPS):
+        return obs, system, learned
+    return rebuilt(obs, robust=True), system, learned
 
 
 def errors(obs, system, data) -> dict[str, float]:
     row = evaluate(obs, data, system).row
     return {k[: -len(" est")]: v for k, v in row.items() if k.endswith(" est")}
+
+
+def _set(o: ResidualObserver, name: str, weights: RobustWeights) -> None:
+    """``weights`` in place of the observer's map ``name``, in its dtype and on its device."""
+    piece = getattr(o, MAPS[name])
+    piece.robust = weights.to(piece.robust.amplitude)
 
 
 def forms(obs, learned: list[str], drive: float, innovation: float) -> dict:
@@ -83,18 +131,16 @@ def forms(obs, learned: list[str], drive: float, innovation: float) -> dict:
     for names in [[n] for n in learned] + ([learned] if len(learned) > 1 else []):
         o = copy.deepcopy(obs)
         for n in names:
-            setattr(o, n, RobustWeights(**getattr(o, n).signature()).to(o.net_dtype))
-        out[" and ".join(names) + " set to the identity"] = o
-    huber = {
-        "robust_drive": lambda o: HuberWeights(o.robust_drive.channels, drive),
-        "robust_innovation": lambda o: HuberWeights(o.robust_innovation.channels, innovation),
-    }
-    for names in (["robust_drive"], ["robust_innovation"], list(MAPS)):
+            old = getattr(o, MAPS[n]).robust
+            _set(o, n, RobustWeights(old.channels, old.width, old.span))
+        out[" and ".join(f"{MAPS[n]}.robust" for n in names) + " set to the identity"] = o
+    bound = {"drive": drive, "innovation": innovation}
+    label = {"drive": f"drive clipped at {drive:g}",
+             "innovation": f"innovation norms clipped at {innovation:g}"}
+    for names in (["drive"], ["innovation"], list(MAPS)):
         o = copy.deepcopy(obs)
         for n in names:
-            setattr(o, n, huber[n](o).to(o.net_dtype))
-        label = {"robust_drive": f"drive clipped at {drive:g}",
-                 "robust_innovation": f"innovation norms clipped at {innovation:g}"}
+            _set(o, n, HuberWeights(getattr(o, MAPS[n]).robust.channels, bound[n]))
         out["Huber by hand: " + ", ".join(label[n] for n in names)] = o
     return out
 
@@ -105,12 +151,12 @@ def plot(obs, learned: list[str], span: float, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    names = {"robust_drive": ["Omega_x", "Omega_y", "Omega_z", "v_x", "v_y", "v_z"],
-             "robust_innovation": list(obs.inputs.innovation)}
+    names = {"drive": ["Omega_x", "Omega_y", "Omega_z", "v_x", "v_y", "v_z"],
+             "innovation": list(obs.measurement.factors)}
     fig, axes = plt.subplots(1, len(learned), figsize=(5.5 * len(learned), 4), squeeze=False)
     r = torch.linspace(0, span, 400)
     for ax, name in zip(axes[0], learned):
-        m = getattr(obs, name)
+        m = getattr(obs, MAPS[name]).robust
         with torch.no_grad():
             w = m(r.unsqueeze(-1).expand(-1, m.channels).to(obs.net_dtype)).float()
         for i in range(m.channels):
@@ -118,8 +164,8 @@ def plot(obs, learned: list[str], span: float, path: Path) -> None:
             ax.plot(r, w[:, i], label=label)
             ax.plot(r, w[:, i] * r, ls=":", color=ax.lines[-1].get_color())
         ax.axhline(1.0, color="grey", lw=0.5)
-        ax.set_title(f"{name}: w(r) (solid), w(r) r (dotted)")
-        ax.set_xlabel("r = |d_i|" if name == "robust_drive" else "r = ||nu_f||")
+        ax.set_title(f"{MAPS[name]}.robust: w(r) (solid), w(r) r (dotted)")
+        ax.set_xlabel("r = |d_i|" if name == "drive" else "r = ||nu_f||")
         ax.legend(fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -132,10 +178,7 @@ def timing(obs, system, reps: int) -> list[str]:
     import statistics
     import time
 
-    bare = copy.deepcopy(obs)
-    for name in MAPS:
-        setattr(bare, name, None)
-    bare.prior_step = None
+    bare = rebuilt(obs, robust=False)
     g = torch.Generator().manual_seed(3)
     long = system.simulate(200, 1000, 0.3, g)
     short = system.simulate(32, 200, 0.3, g)
@@ -168,10 +211,15 @@ def timing(obs, system, reps: int) -> list[str]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("run")
+    ap.add_argument(
+        "run", nargs="?", default="zoo:rigid_body/outliers",
+        help="a zoo entry, run folder or checkpoint (default zoo:rigid_body/outliers)",
+    )
     ap.add_argument("--sigmas", type=float, nargs="+", default=[0.1, 0.3, 0.5])
     ap.add_argument("--sequences", type=int, default=200)
-    ap.add_argument("--system-of", default=None, help="simulate with this run's system instead")
+    ap.add_argument(
+        "--system-of", default=None, help="simulate with this observer's system instead"
+    )
     ap.add_argument("--drive-bound", type=float, default=1.0)
     ap.add_argument("--innovation-bound", type=float, default=0.5)
     ap.add_argument("--span", type=float, default=4.0)
@@ -181,8 +229,7 @@ def main() -> None:
     ap.add_argument("--reps", type=int, default=5)
     args = ap.parse_args()
     torch.set_num_threads(1)
-    learned = [n for n in MAPS if getattr(load_observer(args.run).observer, n) is not None]
-    obs, system = with_maps(args.run)
+    obs, system, learned = with_maps(args.run)
     if args.system_of:
         system = load_observer(args.system_of).system
     cmd = " ".join(
@@ -196,7 +243,7 @@ def main() -> None:
         "# Robust weights on a trained observer: learned ones taken away, Huber's by hand", "",
         f"`{cmd}` ({args.sequences} x 1000 per sigma of `{system!r}`, seed 1, "
         f"steps >= 10; torch {torch.__version__}, one thread). Learned maps: "
-        f"{', '.join(learned) or 'none'}.", "",
+        f"{', '.join(f'{MAPS[n]}.robust' for n in learned) or 'none'}.", "",
         "| sigma | estimator | R | p | b_omega | b_v | R vs nominal EKF | p vs nominal EKF |",
         "|---:|---|---:|---:|---:|---:|---:|---:|",
     ]
@@ -222,6 +269,7 @@ def main() -> None:
             *timing(obs, system, args.reps),
         ]
         print("\n".join(lines[-2:]), flush=True)
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text("\n".join(lines) + "\n")
     print(f"wrote {args.out}")
     if args.plot and learned:

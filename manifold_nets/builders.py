@@ -246,8 +246,18 @@ def build_piece(kind: str, block: dict, where: str, context: dict | None = None)
     (a centred head's ``inner``) are built likewise. Nothing is imported."""
     block = dict(block)
     cls = piece_class(kind, block.pop("type", None), f"{where}.type")
-    params = inspect.signature(cls.__init__).parameters
-    allowed = [p for p in params if p != "self" and p not in _CONTEXT]
+    params = {
+        name: p for name, p in inspect.signature(cls.__init__).parameters.items()
+        if name != "self" and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    }
+    for name in _CONTEXT:  # a block may repeat what the system fixes (a signature's settings)
+        if name in block and name in params and context and context.get(name) is not None:
+            if block[name] != context[name]:
+                raise ValueError(
+                    f"{where} ({cls.name}): {name}={block[name]!r}, but the system's is "
+                    f"{context[name]!r}; leave {name} out (the system gives it)."
+                )
+    allowed = [p for p in params if p not in _CONTEXT or p in block]
     unknown = sorted(set(block) - set(allowed))
     if unknown:
         raise ValueError(
@@ -261,9 +271,7 @@ def build_piece(kind: str, block: dict, where: str, context: dict | None = None)
         if name in params and name not in block and context and context.get(name) is not None:
             block[name] = context[name]
     missing = [
-        p for p, spec in params.items()
-        if p != "self" and spec.default is inspect.Parameter.empty and p not in block
-        and spec.kind not in (spec.VAR_POSITIONAL, spec.VAR_KEYWORD)
+        p for p, spec in params.items() if spec.default is inspect.Parameter.empty and p not in block
     ]
     if missing:
         need = " (pass build_observer(..., system=system))" if "system" in missing else ""

@@ -158,14 +158,15 @@ class TrainSettings:
     """The training loop (``configs/train/``): AdamW, BPTT through the whole rollout."""
 
     #: Epochs of training. 0 (only with ``init_from``): no step; ``init_from``'s weights are
-    #: evaluated as they are under this run's model config, e.g. another
-    #: ``model.centering_factors`` or ``model.step_decay``, which add no weight.
+    #: evaluated as they are under this run's model config, e.g. another centring
+    #: (``model.head``) or step decay (``model.scales``), which add no weight.
     epochs: int = 10
     batch_size: int = 256
     lr: float = 3.0e-4
-    #: Other learning rates for some parameters, ``{name prefix: lr}``: those whose name
-    #: (``model.named_parameters()``) starts with the prefix, e.g. ``{robust: 1.0e-2}`` for the
-    #: learned robust weights; scaled by the same schedule. Empty: ``lr`` for all.
+    #: Other learning rates for some parameters, ``{name: lr}``: those whose name
+    #: (``model.named_parameters()``) starts with it or has it as a dotted part, e.g.
+    #: ``{robust: 1.0e-2}`` for every learned robust weight (``prior.robust.*``,
+    #: ``measurement.robust.*``); scaled by the same schedule. Empty: ``lr`` for all.
     param_lr: dict[str, float] = field(default_factory=dict)
     weight_decay: float = 0.1
     #: Learning-rate schedule over the epochs: ``constant`` (the paper names none) or
@@ -210,12 +211,12 @@ class TrainSettings:
     compile: bool = False
     #: Continue from a checkpoint: a ``last.pt`` file or the run folder that holds one.
     resume: Optional[str] = None
-    #: Start from a trained model's weights (a checkpoint, or a run folder: its ``best.pt``)
-    #: with a fresh optimizer and epoch count: fine-tuning, e.g. on other data. The model must
-    #: be the same (checked); not together with ``resume``. One exception: the checkpoint of an
-    #: observer without the gain head starts the same observer with one (``model.gain``) where
-    #: that one is (``K = 0``; ``ResidualObserver.state_with_gain``); likewise one without the
-    #: centred update, or another ``model.centering``, starts it (the same weights). With
+    #: Start from a trained model's weights (a checkpoint, a run folder: its ``best.pt``,
+    #: or a zoo entry, ``zoo:rigid_body/nominal``) with a fresh optimizer and epoch count:
+    #: fine-tuning, e.g. on other data. The model is this run's ``model``; it may add pieces to
+    #: the checkpoint's (a feature, learned robust weights, a gain head: they start where the
+    #: checkpoint's observer is) or set weightless pieces otherwise (a centring, a step decay;
+    #: :func:`manifold_nets.checkpoint.load_weights`); not together with ``resume``. With
     #: ``epochs=0`` the run only evaluates those weights and saves them with its own config.
     init_from: Optional[str] = None
     #: Show a progress bar with the running loss (on a terminal).
@@ -238,7 +239,8 @@ class EvalConfig:
     seed: int = 1
     #: Steps left out at the start of every sequence (the paper skips the first 10).
     skip_steps: int = 10
-    #: Evaluate this checkpoint instead of training (a ``.pt`` file or a run folder).
+    #: Evaluate this checkpoint instead of training (a ``.pt`` file, a run folder or a zoo entry,
+    #: ``zoo:rigid_body/nominal``), as the observer its own config describes.
     checkpoint: Optional[str] = None
     #: Write the figures (PNG).
     plots: bool = True

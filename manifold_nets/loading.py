@@ -21,8 +21,8 @@ A file from elsewhere is data, not code. What it may make happen:
   no other ``_``-keys of hydra's instantiate);
 * ``model.core`` is ``gru`` or an imported :class:`~manifold_nets.cores.RecurrentCore` subclass
   (:data:`manifold_nets.cores.CORES`);
-* the weights load with ``weights_only=True`` after the checkpoint's signature (group, sizes,
-  update rules, core) is checked against the rebuilt observer
+* the weights load with ``weights_only=True`` after the checkpoint's signature (group, update
+  rules, measurement, pieces, core) is checked against the rebuilt observer
   (:func:`manifold_nets.checkpoint.check_signature`).
 
 Nothing named by the file is imported or called otherwise; an unknown name is an error that says

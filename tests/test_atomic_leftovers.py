@@ -1,5 +1,5 @@
 """Temporaries that a killed writer leaves behind are removed by the next write of the same
-target, and a live writer's temporary is never touched (issue 13, item 10)."""
+target, and a live writer's temporary is never touched."""
 
 from __future__ import annotations
 

@@ -275,7 +275,7 @@ def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
 
 
 def test_a_step_that_can_turn_by_pi_is_refused_naming_the_parameters():
-    """Issue 13 item 2 (was: accepted, losses of 1e11). Message: ``Attitude: one step can turn
+    """(Once accepted, with losses of 1e11.) Message: ``Attitude: one step can turn
     by up to sqrt(3) * (4 * omega_rms + bias_range) * dt = sqrt(3) * (4 * 1 + 0.2) * 0.5 =
     3.637 rad, which must be < pi ...; Use a smaller dt, omega_rms or bias_range (dt < 0.4319 s
     for these values).``"""

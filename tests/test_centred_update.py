@@ -92,12 +92,12 @@ def save(obs, path):
 def block_overrides(*more: str, measurement="{factors:{R:[0,9],p:[9,12]}}", prior="{type:system}",
                     features="[{type:embedding,drop:[p]},{type:readings,drop:[p]},innovation]",
                     head="{type:plain}", scales="[]") -> list[str]:
-    """Overrides of the train command giving the model as blocks (whatever format the
-    experiment's model file is in: its flat keys reset), with ``more`` after them."""
-    flat = ["innovation={}", "relative_only=[]", "gain=false", "output_scale=1.0"]
+    """Overrides of the train command giving the model's every block (the rigid body's observer
+    of :func:`rigid_observer` by default), whatever the experiment's model file holds, with
+    ``more`` after them."""
     blocks = [f"measurement={measurement}", f"prior={prior}", f"features={features}",
               f"head={head}", f"scales={scales}"]
-    return [f"++model.{o}" for o in flat + blocks] + list(more)
+    return [f"++model.{o}" for o in blocks] + list(more)
 
 
 class ReadingCore(RecurrentCore):
@@ -261,8 +261,8 @@ def test_bad_centering_says_what_is_wrong():
         CentredHead(1.0, inner=GainHead(offset=False))
     with pytest.raises(ValueError, match="centred head: inner must be a plain or a gain head"):
         CentredHead(1.0, inner=CentredHead(0.5))
-    # no prediction: the output at zero innovation is the motion itself (session 13 measured it:
-    # session 6's outlier observer, no prior, at c = 0.7 went from a validation loss of -4.9 to 1.0)
+    # no prediction: the output at zero innovation is the motion itself (measured: an
+    # outlier observer without a prior, at c = 0.7, went from a validation loss of -4.9 to 1.0)
     with pytest.raises(ValueError, match="the centred head .* but the observer has no prior"):
         rigid_observer(system, prior="none")
 

@@ -102,6 +102,23 @@ def test_bad_factor_values_say_what_is_wrong():
         build_piece("head", {"type": "plain", "factors": {"R": 0.5}}, "model.head")
 
 
+def test_flat_factors_without_a_centring_say_so():
+    """The first format's ``centering_factors`` means nothing without ``centering``: the translated
+    config must refuse it, as the first format did ("but model.centering is 0"), not drop it."""
+    from omegaconf import OmegaConf
+
+    from manifold_nets.builders import build_observer
+    from manifold_nets.config import ModelConfig
+
+    system = RigidBody()
+    model = OmegaConf.structured(ModelConfig(
+        hidden_size=4, num_layers=1, innovation={"R": [0, 9], "p": [9, 12]}, prior="system",
+        centering_factors={"R": 0.5},
+    ))
+    with pytest.warns(FutureWarning), pytest.raises(ValueError, match="centering"):
+        build_observer(system.group, 18, 0, model, system=system)
+
+
 def test_the_train_command_takes_it_and_load_observer_rebuilds_it(tmp_path):
     observer, system, _ = train_tiny_and_load(
         "paper_cpu_prior", tmp_path,

@@ -157,6 +157,23 @@ def test_a_block_with_an_unknown_key_lists_what_the_piece_takes():
         build_piece("head", {"type": "centred", "c": 0.5, "gain": True}, "model.head")
 
 
+def test_a_flat_ramp_without_a_centring_says_so():
+    """The first format's ``centering_ramp`` means nothing without ``centering``: the translated
+    config must refuse it, as the first format did ("but model.centering is 0"), not drop it."""
+    from omegaconf import OmegaConf
+
+    from manifold_nets.builders import build_observer
+    from manifold_nets.config import ModelConfig
+
+    system = RigidBody()
+    model = OmegaConf.structured(ModelConfig(
+        hidden_size=4, num_layers=1, innovation={"R": [0, 9], "p": [9, 12]}, prior="system",
+        centering_ramp=10,
+    ))
+    with pytest.warns(FutureWarning), pytest.raises(ValueError, match="centering"):
+        build_observer(system.group, 18, 0, model, system=system)
+
+
 def test_the_train_command_trains_it_and_load_observer_rebuilds_it(tmp_path):
     observer, system, _ = train_tiny_and_load(
         "paper_cpu_prior", tmp_path, *block_overrides(head="{type:centred,c:0.9,ramp:5}")

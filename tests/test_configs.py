@@ -240,10 +240,17 @@ def test_the_whole_command_on_tiny_sizes(tmp_path):
     )
     assert other["table"][0]["sigma"] == 0.3 and other["table"][0]["R meas"] > row["R meas"]
 
-    # a checkpoint of another model, a missing checkpoint, a missing dataset: clear errors
-    with pytest.raises(CheckpointError, match="another model.*hidden_size: checkpoint 8, model 16"):
+    # eval.checkpoint is the observer its own config describes: the command's model settings
+    # do not apply to it
+    same = run(
+        _compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'run'}", "model.hidden_size=16")),
+        tmp_path / "ev16",
+    )
+    assert same["table"][0]["R est"] == row["R est"]
+    # starting another model from it, a missing checkpoint, a missing dataset: clear errors
+    with pytest.raises(CheckpointError, match="cannot start this model.*core.hidden_size"):
         run(
-            _compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'run'}", "model.hidden_size=16")),
+            _compose(*_tiny(cache, f"train.init_from={tmp_path / 'run'}", "model.hidden_size=16")),
             tmp_path / "bad",
         )
     with pytest.raises(CheckpointError, match="no best.pt"):
@@ -336,7 +343,7 @@ def test_zero_epochs_from_init_from_evaluate_its_weights_under_this_runs_config(
     setting of this run (here the step-size decay) and saved with this run's config."""
     cache = tmp_path / "data"
     run(_compose(*_tiny(cache)), tmp_path / "first")
-    decay = "++model.step_decay={b_v:3}"
+    decay = "++model.scales=[{type:step_decay,factors:{b_v:3}}]"
     m = run(
         _compose(*_tiny(cache, "train.epochs=0", decay, f"train.init_from={tmp_path / 'first'}")),
         tmp_path / "as_is",
@@ -348,8 +355,8 @@ def test_zero_epochs_from_init_from_evaluate_its_weights_under_this_runs_config(
         torch.load(tmp_path / d / "checkpoints" / "best.pt", weights_only=True)
         for d in ("first", "as_is")
     )
-    assert as_is["config"]["model"]["step_decay"] == {"b_v": 3}
-    assert "step_decay" not in first["config"]["model"] or not first["config"]["model"]["step_decay"]
+    assert as_is["config"]["model"]["scales"] == [{"type": "step_decay", "factors": {"b_v": 3}}]
+    assert not first["config"]["model"]["scales"]
     for name, w in first["model"].items():
         assert torch.equal(as_is["model"][name], w), name
     # the decay acts: the same weights evaluate otherwise than the first run's
@@ -357,9 +364,7 @@ def test_zero_epochs_from_init_from_evaluate_its_weights_under_this_runs_config(
     first_row = json.loads((tmp_path / "first" / "results" / "metrics.json").read_text())["table"][0]
     assert row["b_v est"] != first_row["b_v est"]
     # the saved folder is a checkpoint of the decayed observer: eval.checkpoint loads it as is
-    again = run(
-        _compose(*_tiny(cache, decay, f"eval.checkpoint={tmp_path / 'as_is'}")), tmp_path / "again"
-    )
+    again = run(_compose(*_tiny(cache, f"eval.checkpoint={tmp_path / 'as_is'}")), tmp_path / "again")
     assert again["table"][0]["b_v est"] == row["b_v est"]
 
 
@@ -487,7 +492,7 @@ def test_the_command_refuses_a_negative_grad_clip_and_says_where_its_folder_is(t
 
 
 def test_a_typoed_eval_checkpoint_is_refused_before_the_run_folder_gets_a_file(tmp_path):
-    """Issue 13 item 4: the evaluate command with ``eval.checkpoint`` naming no file fails with
+    """The evaluate command with ``eval.checkpoint`` naming no file fails with
     ``no checkpoint at <path>; train first or fix the path.`` and writes no config.yaml (was:
     config.yaml written, then the error)."""
     out_dir, typo = tmp_path / "out", tmp_path / "runs" / "bset.pt"

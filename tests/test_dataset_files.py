@@ -1,4 +1,4 @@
-"""Hostile dataset files and unsound split metadata (issue 13, items 4 and 5).
+"""Hostile dataset files and unsound split metadata.
 
 Every case builds the bad file in ``tmp_path`` and pins the whole message a user sees: it names
 the file, the problem and the fix, and no raw ``EOFError``/``TypeError``/``MemoryError``/

@@ -1,5 +1,5 @@
 """A group with a double cover passes ``groups.testing`` by declaring when two tensors are one
-element (issue 13 item 1).
+element.
 
 ``QuaternionSO3`` is a user's own group, written here by subclassing :class:`~groups.LieGroup`:
 SO(3) as unit quaternions ``(w, x, y, z)``, where ``q`` and ``-q`` are the same rotation. Its

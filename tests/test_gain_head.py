@@ -272,8 +272,8 @@ def test_only_a_plain_observer_of_the_same_shape_widens(tmp_path):
     with pytest.raises(CheckpointError, match="core.hidden_size differs: checkpoint 8, model 16"):
         load_weights(gain_observer(system), path, widen=True)
     gain_path = save(gain_observer(system), tmp_path / "gain.pt")
-    with pytest.raises(CheckpointError, match=r"core.head.weight: checkpoint \(84, 16\), model "
-                                              r"\(12, 16\)"):  # into a plain observer: no
+    with pytest.raises(CheckpointError, match="the checkpoint's head is 'gain', this "
+                                              "observer's 'plain'"):  # into a plain one: no
         load_weights(gain_observer(system, head=PlainHead()), gain_path, widen=True)
     plain_path = save(gain_observer(system, head=PlainHead()), tmp_path / "plain16.pt")
     with pytest.raises(CheckpointError, match="widen only into a gain head with its offset"):

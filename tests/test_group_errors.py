@@ -168,7 +168,7 @@ def test_check_group_misuse() -> None:
         check_group(SO3(), dtypes=(torch.float16,), checks=["exp_log"])
 
 
-# ------------------------------------------------------------------ issue 13, item 8
+# ------------------------------------------------------------------ bad arguments
 
 
 @pytest.mark.parametrize("group", SHIPPED, ids=ids)
@@ -192,7 +192,7 @@ def test_half_precision_is_refused_naming_the_supported_dtypes(group: LieGroup, 
 @pytest.mark.parametrize("group", SHIPPED, ids=ids)
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16], ids=["float16", "bfloat16"])
 def test_identity_and_random_refuse_half_precision(group: LieGroup, dtype) -> None:
-    """Issue 13 item 3. Message: ``SO3.random expects dtype float32 or float64 (the only
+    """Message: ``SO3.random expects dtype float32 or float64 (the only
     supported dtypes), got torch.float16; ask for torch.float32 or torch.float64 and convert the
     result afterwards if you need another dtype.``"""
     for where, call in (

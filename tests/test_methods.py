@@ -1,4 +1,4 @@
-"""method= selection, the unconstrained ablation and the comparison of methods (issue 5)."""
+"""method= selection, the unconstrained ablation and the comparison of methods."""
 
 from __future__ import annotations
 

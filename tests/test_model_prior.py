@@ -60,7 +60,8 @@ def test_predict_from_the_true_state_and_noise_free_readings_is_the_next_state(n
     data = simulate(system)
     u = data.inputs if system.input_dim else None
     for k in (0, 7, 29):
-        pred = system.predict(data.states[:, k], data.measurements[:, k], u if u is None else u[:, k])
+        uk = None if u is None else u[:, k]
+        pred = system.predict(data.states[:, k], data.measurements[:, k], uk)
         assert torch.allclose(pred, data.states[:, k + 1], atol=1e-12), name
 
 

@@ -75,6 +75,6 @@ def test_the_commands_load_the_installed_configs_and_are_console_scripts():
 
 
 def test_torch_is_a_range_not_a_pin():
-    """An exact pin breaks every environment that has another torch (issue 12)."""
+    """An exact pin breaks every environment that has another torch."""
     (torch,) = [d for d in PYPROJECT["project"]["dependencies"] if d.startswith("torch")]
     assert "==" not in torch and ">=" in torch and "<" in torch, torch

@@ -150,7 +150,7 @@ def randomise(obs, seed=0, scale=0.3):
     return obs
 
 
-# ---------------------------------------------------------------------- observers holding every piece
+# ---------------------------------------------------------------------- observers of every piece
 
 
 def _rigid_centred(system):
@@ -253,7 +253,8 @@ def test_rollout_online_steps_and_the_step_module_agree_and_stay_on_the_group(na
     y, u = data.measurements, _inputs(system, data)
     with torch.no_grad():
         est = obs(y, u)
-        assert est.dtype == torch.float64 and est.shape == (3, STEPS + 1, *system.group.element_shape)
+        assert est.dtype == torch.float64
+        assert est.shape == (3, STEPS + 1, *system.group.element_shape)
         state = obs.init_state(3)
         for k in range(STEPS):
             state = obs.step(state, y[:, k], None if u is None else u[:, k])

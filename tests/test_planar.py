@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from omegaconf import OmegaConf
 from hydra import compose, initialize_config_dir
 from hydra.utils import instantiate
 from scipy.integrate import solve_ivp
@@ -273,7 +274,8 @@ def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
     ]
     with initialize_config_dir(config_dir=CONFIGS, version_base="1.3"):
         cfg = compose("train", overrides=tiny)
-    assert cfg.system.pose_group == "so2_r2" and dict(cfg.model.innovation) == {"p": [0, 2]}
+    assert cfg.system.pose_group == "so2_r2"
+    assert OmegaConf.to_container(cfg.model.measurement) == {"factors": {"p": [0, 2]}}
     (row,) = run(cfg, tmp_path / "run")["table"]
     assert {"p est", "position_m est", "position_m meas", "heading_deg est"} <= set(row)
     assert row["membership max"] < 1e-12
@@ -286,7 +288,7 @@ def test_experiment_trains_a_few_steps_evaluates_and_compares(tmp_path):
 
 
 def test_a_step_that_can_turn_by_pi_is_refused_naming_the_parameters():
-    """Issue 13 item 2 (was: accepted, silent garbage). Message: ``Planar: one step can turn by
+    """(Once accepted, silent garbage.) Message: ``Planar: one step can turn by
     up to (4 * turn_rate_rms + turn_rate_bias_range) * dt = (4 * 10 + 0.1) * 0.1 = 4.01 rad,
     which must be < pi ...; Use a smaller dt, turn_rate_rms or turn_rate_bias_range (dt <
     0.07834 s for these values).``"""

@@ -339,8 +339,13 @@ def evaluate(
         }
         rows.append(r.row)
         for name in cfg.eval.baselines:  # the references, on the same set
-            est = make_estimator(system, build_estimator_factory(system, MethodConfig(name=name)),
-                                 sigma)
+            try:
+                est = make_estimator(
+                    system, build_estimator_factory(system, MethodConfig(name=name)), sigma
+                )
+            except ValueError as err:  # e.g. a filter at sigma 0: no row, and why
+                log.info("eval.baselines: no %s row at sigma %g (%s)", name, sigma, err)
+                continue
             b = evaluate_estimator(est, data, system, skip=cfg.eval.skip_steps)
             reference_rows.append({"sigma": sigma, "method": name,
                                    **{k: v for k, v in b.row.items() if k != "sigma"},

@@ -76,6 +76,22 @@ def blocks_from_flat(model, prior: str = "none") -> dict | None:
     ``None`` when it sets none and ``prior`` is ``none``. Raises ``ValueError`` for a removed
     option."""
     used = flat_keys_set(model)
+    if prior not in (None, "none", "system"):
+        raise ValueError(
+            f"model.prior={prior!r} is not one of ('none', 'system'); write the prior as a block, "
+            "e.g. model.prior={type: system} (types: none, system, robust_system, kinematic)."
+        )
+    partners = {"gain_offset": ("gain", "model.gain=true"),
+                "centering_ramp": ("centering", "model.centering (0 < c <= 1)"),
+                "centering_factors": ("centering", "model.centering (0 < c <= 1)")}
+    for key, (partner, fix) in partners.items():
+        if key in used and partner not in used:
+            raise ValueError(f"model.{key} is a setting of model.{partner}, which is not set; set "
+                             f"{fix}, or write the head as a block (model.head).")
+    if "robust_drive" in used and prior != "system":
+        raise ValueError("model.robust_drive weighs the drive of the model prior, but there is no "
+                         "model prior; set model.prior=system, or write model.prior={type: "
+                         "robust_system}.")
     for key in used:
         if key in REMOVED:
             raise ValueError(

@@ -135,7 +135,7 @@ class RobustMeasurement(Measurement):
                 "names none; give factors ({R: [0, 9], p: [9, 12]}) or use a plain measurement."
             )
         width = check_int("robust measurement: width", width, 1)
-        span = check_number("robust measurement: span", span, 1e-12, float("inf"))
+        span = check_number("robust measurement: span", span, 1e-12, 1e12)
         self.robust = RobustWeights(len(self.factors), width, span)
 
     def settings(self) -> dict:

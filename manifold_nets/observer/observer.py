@@ -92,19 +92,25 @@ class ResidualObserver(nn.Module):
             raise TypeError(f"group must be a groups.LieGroup, got {type(group).__name__}.")
         if not isinstance(measurement, Measurement):
             measurement = Measurement(measurement)
+        prior = NoPrior() if prior is None else prior
+        head = PlainHead() if head is None else head
+        features = [Embedding(), Readings()] if features is None else list(features)
+        for kind, piece, cls in [
+            ("measurement", measurement, Measurement), ("prior", prior, Prior), ("head", head, Head),
+            *[("feature", f, Feature) for f in features], *[("scale", s, StepScale) for s in scales],
+        ]:
+            if not isinstance(piece, cls):
+                raise TypeError(
+                    f"{kind} must be a {cls.__name__} piece (manifold_nets.observer), got "
+                    f"{type(piece).__name__}."
+                )
         self.group = group
         self.measurement = measurement.bind(group)
         self.update = (GroupUpdate() if update is None else update).bind(group)
-        self.prior = (NoPrior() if prior is None else prior).bind(group, self.measurement)
-        pieces = [Embedding(), Readings()] if features is None else list(features)
-        self.features = nn.ModuleList([f.bind(group, self.measurement) for f in pieces])
-        self.head = (PlainHead() if head is None else head).bind(group, self.measurement)
+        self.prior = prior.bind(group, self.measurement)
+        self.features = nn.ModuleList([f.bind(group, self.measurement) for f in features])
+        self.head = head.bind(group, self.measurement)
         self.scales = nn.ModuleList([s.bind(group, self.measurement) for s in scales])
-        for kind, piece, cls in [("prior", self.prior, Prior), ("head", self.head, Head)] + [
-            ("feature", f, Feature) for f in self.features
-        ] + [("scale", s, StepScale) for s in self.scales]:
-            if not isinstance(piece, cls):
-                raise TypeError(f"{kind} must be a {cls.__name__}, got {type(piece).__name__}.")
         if getattr(self.head, "c", None) is not None and not self.prior.predicts:
             raise ValueError(
                 "the centred head subtracts the core's output at the measurement the prediction "

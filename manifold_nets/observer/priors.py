@@ -96,7 +96,7 @@ class RobustSystemPrior(SystemPrior):
                 "system prior."
             )
         width = check_int("robust system prior: width", width, 1)
-        span = check_number("robust system prior: span", span, 1e-12, float("inf"))
+        span = check_number("robust system prior: span", span, 1e-12, 1e12)
         self.robust = RobustWeights(system.drive_dim, width, span)
 
     def settings(self):

@@ -13,12 +13,12 @@ computes exactly what it did without, and training moves it only as far as the d
 knots start evenly spread over ``[0, span]`` (``span`` in the units of ``r``), each width at
 twice their spacing.
 
-The observer uses it in two places (:class:`~manifold_nets.observer.ResidualObserver`):
+Two pieces use it (:mod:`manifold_nets.observer`):
 
-* ``robust_drive``: each component of the drive the model prior integrates (the rigid body's
+* :class:`~manifold_nets.observer.priors.RobustSystemPrior`: each component of the drive the model prior integrates (the rigid body's
   bias-corrected gyro and velocity readings), ``d_i <- w_i(|d_i|) d_i``: a reading the motion
   cannot produce (an outlier) is pulled in before it moves the prediction;
-* ``robust_innovation``: each innovation factor's innovation, ``nu_f <- w_f(||nu_f||) nu_f``, and
+* :class:`~manifold_nets.observer.measurement.RobustMeasurement`: each measured factor's innovation, ``nu_f <- w_f(||nu_f||) nu_f``, and
   the measurement the core reads with it, ``m_f <- xhat_f^- exp(nu_f)``: a gate on implausible
   measurements, learned.
 

@@ -1,7 +1,9 @@
 """Fine-tuning from an older observer (``train.init_from``): its weights into one with more pieces.
 
 :func:`widen_state` takes the ``state_dict`` and signature of a trained observer and returns a
-``state_dict`` for ``observer``, which then starts out computing what the trained one does:
+``state_dict`` for ``observer``. Pieces with weights that the trained observer lacked start as
+the identity, so the observer computes what the trained one did, but for the weightless pieces
+whose settings it changes (a centring, a step decay: those compute what their settings say):
 
 * a feature the trained observer did not read gets zero input weights in the core's first layer
   (a :class:`~manifold_nets.cores.GRUCore`), wherever it sits in the list;
