@@ -122,7 +122,7 @@ def test_a_tiny_run_trains_both_stages_and_evaluates_whole_trials(tiny_run):
     q = np.load(tiny_run / "results" / "learned_test_quaternions.npz")["te"]
     assert q.shape == (2000, 4)
     observer, system, _ = load_observer(tiny_run)
-    assert observer.signature()["propagate"] == {"x": [6, 9]}
+    assert observer.signature()["prior"]["velocities"] == {"x": [6, 9]}
     assert math.isclose(system.dt, 4 * BROAD_DT)
 
 

@@ -115,7 +115,7 @@ def test_flat_factors_without_a_centring_say_so():
         hidden_size=4, num_layers=1, innovation={"R": [0, 9], "p": [9, 12]}, prior="system",
         centering_factors={"R": 0.5},
     ))
-    with pytest.warns(FutureWarning), pytest.raises(ValueError, match="centering"):
+    with pytest.raises(ValueError, match="centering"):
         build_observer(system.group, 18, 0, model, system=system)
 
 

@@ -235,7 +235,7 @@ def test_a_flat_gain_offset_without_the_gain_says_so():
         hidden_size=4, num_layers=1, innovation={"R": [0, 9], "p": [9, 12]}, prior="system",
         gain=False, gain_offset=False,
     ))
-    with pytest.warns(FutureWarning), pytest.raises(ValueError, match="gain"):
+    with pytest.raises(ValueError, match="gain"):
         build_observer(system.group, 18, 0, model, system=system)
 
 

@@ -173,7 +173,10 @@ def test_command_line(tmp_path):
     load_or_generate(RigidBody(), cfg)
     here = sorted((tmp_path / "here").glob("*.npz"))
     assert [f.name for f in here] == [f.name for f in files]
-    digest = lambda p: hashlib.sha256(p.read_bytes()).hexdigest()
+
+    def digest(p):
+        return hashlib.sha256(p.read_bytes()).hexdigest()
+
     assert [digest(f) for f in here] == [digest(f) for f in files]
 
 

@@ -159,7 +159,9 @@ def test_measurement_model_formula():
 
 def _mean_rotation_error(sigma: float) -> float:
     """E ||R exp([w]x) - R||_F = E 2 sqrt(2) sin(|w|/2), |w| Maxwell with scale sigma."""
-    pdf = lambda t: math.sqrt(2 / math.pi) * t * t * math.exp(-t * t / (2 * sigma**2)) / sigma**3
+    def pdf(t):
+        return math.sqrt(2 / math.pi) * t * t * math.exp(-t * t / (2 * sigma**2)) / sigma**3
+
     return quad(lambda t: 2 * math.sqrt(2) * math.sin(t / 2) * pdf(t), 0, 20 * sigma)[0]
 
 
@@ -235,8 +237,12 @@ def test_step_and_measure_are_differentiable_for_a_filter():
     x = body.sample_initial_state(1, g)[0]
     w = body.sample_drive(1, 1, g)[0, 0]
     # Jacobians with respect to a right perturbation x exp(delta), at delta = 0
-    f = lambda d: body.group.embed(body.step(body.group.rplus(x, d), w))
-    h = lambda d, nu: body.measure(body.group.rplus(x, d), w, nu)
+    def f(d):
+        return body.group.embed(body.step(body.group.rplus(x, d), w))
+
+    def h(d, nu):
+        return body.measure(body.group.rplus(x, d), w, nu)
+
     zero_d, zero_nu = torch.zeros(12, dtype=F64), torch.zeros(12, dtype=F64)
     Jf = torch.func.jacrev(f)(zero_d)
     Jh, Jn = torch.func.jacrev(h, argnums=(0, 1))(zero_d, zero_nu)
