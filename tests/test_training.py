@@ -230,6 +230,28 @@ def test_nan_loss_stops_with_a_clear_message_and_keeps_best(tmp_path):
     assert (tmp_path / "checkpoints" / "best.pt").is_file()
 
 
+def test_a_loss_that_explodes_without_going_nan_stops_training(tmp_path):
+    """A finite loss far above the start (here a corrupt target of 1e9) stops training as a NaN
+    does, naming what happened, and keeps the best checkpoint."""
+    train, val = make_data(16, seed=0), make_data(8, seed=1)
+    train.states[3, 5, 9] = 1e9
+    with pytest.raises(TrainingDiverged, match=r"training loss exploded without going NaN "
+                                               r"\(.*, over .*\) at epoch 1, batch \d"):
+        train_model(make_model(), train, val, tmp_path, batch_size=16)
+    assert (tmp_path / "checkpoints" / "best.pt").is_file()
+
+
+def test_an_untrained_observer_whose_steps_grow_without_bound_is_refused(tmp_path):
+    """Validation loss 2.5e23 before any step was once trained on silently; over 1e12 the run
+    stops before the first step and says how to start the head."""
+    model = make_model()
+    with torch.no_grad():
+        model.core.head.bias[-2:] = 1e7  # the absolute "bias" factor set to 1e7 every step
+    with pytest.raises(TrainingDiverged, match=r"validation loss of the starting model is .*, "
+                                               r"over 1e\+12.*start its head at zero"):
+        train_model(model, make_data(16, seed=0), make_data(8, seed=1), tmp_path)
+
+
 def test_noise_augmentation_needs_the_system_hook():
     with pytest.raises(ValueError, match="apply_noise"):
         MeasurementNoise(object(), 0.0, 0.2)
