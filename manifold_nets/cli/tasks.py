@@ -74,7 +74,7 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
     if cfg.train.epochs == 0 and not cfg.train.init_from and _trains(cfg):
         raise ValueError(
             "train.epochs=0 trains nothing: it evaluates train.init_from's weights as they are "
-            "(e.g. under another model.centering_factors or model.step_decay, which add no "
+            "(e.g. under another centring, model.head, or step decay, model.scales, which add no "
             "weight); give train.init_from=<run folder or checkpoint>, or set train.epochs >= 1."
         )
     if cfg.train.init_from and cfg.train.resume:
