@@ -33,6 +33,8 @@ class Head(Piece):
     """See the module docstring."""
 
     kind = "head"
+    #: Whether the head needs a prior that predicts the measurement (the observer checks it).
+    needs_prediction = False
 
     def output_size(self, tangent_dim: int, innovation_dim: int) -> int:  # noqa: ARG002
         """How many numbers the core outputs per step."""
@@ -124,7 +126,7 @@ class CentredHead(Head):
         inner: the head whose ``v`` is centred (default plain; a gain head with its offset).
     """
 
-    name = "centred"
+    name, needs_prediction = "centred", True
 
     def __init__(self, c: float, ramp: int = 0, factors: dict | None = None, inner: Head | None = None):
         super().__init__()

@@ -111,12 +111,12 @@ class ResidualObserver(nn.Module):
         self.features = nn.ModuleList([f.bind(group, self.measurement) for f in features])
         self.head = head.bind(group, self.measurement)
         self.scales = nn.ModuleList([s.bind(group, self.measurement) for s in scales])
-        if getattr(self.head, "c", None) is not None and not self.prior.predicts:
+        if self.head.needs_prediction and not self.prior.predicts:
             raise ValueError(
-                "the centred head subtracts the core's output at the measurement the prediction "
-                "expects, but the observer has no prior: then that output is the motion itself, "
-                "and centring takes it away. Give a prior (the system's, a kinematic one) or use "
-                "the plain head."
+                f"the {self.head.name} head subtracts the core's output at the measurement the "
+                "prediction expects, but the observer has no prior: then that output is the "
+                "motion itself, and centring takes it away. Give a prior (the system's, a "
+                "kinematic one) or use the plain head."
             )
         self.core = self._core(core)
         self._timed = [self.head, *self.scales]
