@@ -21,6 +21,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import stat
 import re
 import secrets
 import socket
@@ -121,13 +122,38 @@ def remove_stale_temporaries(
     return removed
 
 
+def _umask() -> int:
+    """The process's umask, read without changing it where the system says it (Linux), else by
+    setting it and back."""
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    except (OSError, ValueError):
+        pass
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+def _mode_for(path: Path) -> int:
+    """The mode of the file that replaces ``path``: the mode ``path`` has (a replaced file keeps
+    its permissions), or for a new file what ``open`` would give it under the user's umask."""
+    try:
+        return stat.S_IMODE(os.stat(path).st_mode)
+    except OSError:
+        return 0o666 & ~_umask()
+
+
 @contextlib.contextmanager
 def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator[IO]:
     """``with atomic_open(path, "wb") as f: ...`` writes ``path`` atomically.
 
     The folder is created if needed; on an exception the temporary file is removed and ``path``
     is left as it was. Temporaries that killed writers of ``path`` left behind are removed first
-    (:func:`remove_stale_temporaries`). ``mode`` is ``"w"`` or ``"wb"``; ``kwargs`` go to ``open`` (e.g. ``newline``).
+    (:func:`remove_stale_temporaries`). A new file gets the permissions the user's umask gives;
+    a replaced one keeps its own. ``mode`` is ``"w"`` or ``"wb"``; ``kwargs`` go to ``open`` (e.g. ``newline``).
     """
     if mode not in ("w", "wb"):
         raise ValueError(f"atomic_open writes whole files: mode must be 'w' or 'wb', got {mode!r}.")
@@ -140,7 +166,7 @@ def atomic_open(path: str | os.PathLike, mode: str = "w", **kwargs) -> Iterator[
             yield f
             f.flush()
             os.fsync(f.fileno())
-        os.chmod(tmp, 0o644)
+        os.chmod(tmp, _mode_for(path))
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(FileNotFoundError):

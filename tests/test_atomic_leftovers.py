@@ -87,3 +87,22 @@ def test_stale_removed_live_kept(tmp_path, caplog):
     assert {live.name, fresh_other_host.name, other_target.name} <= remaining
     if os.name == "posix":  # where the writer's pid can be checked
         assert dead.name not in remaining and live_old.name in remaining
+
+
+def test_a_new_file_follows_the_umask_and_a_replaced_one_keeps_its_mode(tmp_path):
+    import os
+    import stat
+
+    from manifold_nets.atomic import write_text_atomic
+
+    old = os.umask(0o077)
+    try:
+        write_text_atomic(tmp_path / "new.txt", "x")
+    finally:
+        os.umask(old)
+    assert stat.S_IMODE(os.stat(tmp_path / "new.txt").st_mode) == 0o600
+    kept = tmp_path / "kept.txt"
+    kept.write_text("old")
+    os.chmod(kept, 0o640)
+    write_text_atomic(kept, "new")
+    assert kept.read_text() == "new" and stat.S_IMODE(os.stat(kept).st_mode) == 0o640
