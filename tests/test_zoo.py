@@ -81,3 +81,21 @@ def test_an_unknown_entry_is_refused_with_the_list():
         load_observer("zoo:rigid_body/nope")
     with pytest.raises(ValueError, match="not an installed zoo entry"):
         load_observer("zoo:rigid_body/../zoo/nominal")
+
+
+def test_a_run_of_an_example_system_loads_with_no_import_by_hand():
+    """In a fresh interpreter, by path (not by zoo name, which imports its package): the
+    registry finds the example system through the installed entry points."""
+    import subprocess
+
+    folder = ROOT / "examples" / "rigid_body" / "zoo" / "bias_walk"
+    code = (
+        "import sys\n"
+        "from manifold_nets import load_observer\n"
+        "assert 'manifold_nets_examples.rigid_body' not in sys.modules\n"
+        f"obs, system, _ = load_observer({str(folder)!r})\n"
+        "print(type(system).__name__)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "MismatchedRigidBody"  # the bias walk's true system
