@@ -81,6 +81,12 @@ def run(argv: Sequence[str] | None = None) -> Path:
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if a.batch_size < 1 or a.chunk < 1:
         p.error("--batch-size and --chunk must be positive")
+    out = Path(a.out)
+    if out.suffix != ".npz":
+        p.error(f"--out {out}: the estimates are written as a .npz archive; name it <name>.npz")
+    if out.is_dir() or any(q.exists() and not q.is_dir() for q in out.parents):
+        p.error(f"--out {out}: {'a folder' if out.is_dir() else 'a file is in its path'}; give a "
+                "path of a new or existing .npz file")
     if a.threads:
         torch.set_num_threads(a.threads)
     observer, system, _ = load_observer(a.model)
@@ -89,13 +95,18 @@ def run(argv: Sequence[str] | None = None) -> Path:
     est = apply_observer(
         observer, data.measurements, data.inputs, a.batch_size, a.chunk, not a.no_progress
     )
+    bad = int((~torch.isfinite(est.flatten(2)).all(-1)).sum())
+    if bad:
+        raise ValueError(
+            f"{a.model} gave non-finite estimates at {bad} of {est.shape[0] * est.shape[1]} steps "
+            f"(NaN or Inf weights, or a diverging observer); nothing was written to {out}."
+        )
     meta = {
         "model": str(a.model),
         "data": str(a.data),
         "signature": observer.signature(),
         "element_shape": list(system.group.element_shape),
     }
-    out = Path(a.out)
     with atomic_open(out, "wb") as f:
         np.savez(f, estimates=est.double().numpy(), meta=np.array(json.dumps(meta)))
     log.info("estimates %s written to %s", tuple(est.shape), out)

@@ -1,0 +1,49 @@
+"""``mn-apply``: a trained observer over a dataset file. Its destination is checked before any
+work, and non-finite estimates are an error that writes nothing."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from manifold_nets.checkpoint import load_checkpoint, save_checkpoint
+from manifold_nets.cli import apply
+from manifold_nets.data import save_dataset
+from manifold_nets.plugins import zoo_path
+
+
+@pytest.fixture
+def data_file(tmp_path):
+    from manifold_nets_examples.rigid_body import RigidBody
+
+    ds = RigidBody().simulate(2, 20, 0.1, torch.Generator().manual_seed(0))
+    save_dataset(ds, tmp_path / "data.npz")
+    return tmp_path / "data.npz"
+
+
+def test_the_estimates_land_in_a_npz_file(tmp_path, data_file):
+    out = apply.run(["zoo:rigid_body/paper", str(data_file), "--out", str(tmp_path / "e.npz"),
+                     "--no-progress"])
+    est = np.load(out)["estimates"]
+    assert est.shape == (2, 21, 18) and np.isfinite(est).all()
+
+
+@pytest.mark.parametrize("bad", ["e.csv", "folder", "file.txt/e.npz"])
+def test_a_bad_destination_is_refused_before_any_work(tmp_path, data_file, bad, capsys):
+    (tmp_path / "folder").mkdir()
+    (tmp_path / "file.txt").write_text("x")
+    with pytest.raises(SystemExit):
+        apply.run(["zoo:rigid_body/paper", str(data_file), "--out", str(tmp_path / bad)])
+    assert "--out" in capsys.readouterr().err
+
+
+def test_nan_weights_are_an_error_and_nothing_is_written(tmp_path, data_file):
+    folder = zoo_path("rigid_body/paper")
+    ckpt = load_checkpoint(folder / "checkpoints" / "best.pt")
+    ckpt["model"]["core.head.bias"][0] = float("nan")
+    save_checkpoint(tmp_path / "nan.pt", {k: v for k, v in ckpt.items() if k != "format"})
+    out = tmp_path / "e.npz"
+    with pytest.raises(ValueError, match="non-finite estimates.*nothing was written"):
+        apply.run([str(tmp_path / "nan.pt"), str(data_file), "--out", str(out), "--no-progress"])
+    assert not out.exists()
