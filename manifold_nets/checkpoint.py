@@ -173,7 +173,8 @@ def check_contents(ckpt: dict, path: str | os.PathLike = "checkpoint") -> None:
 
 def load_state(model: torch.nn.Module, ckpt: dict, path: str | os.PathLike) -> None:
     """``model.load_state_dict(ckpt["model"])``, or a :class:`CheckpointError` naming ``path``
-    when the tensors do not fit the model (a missing or unexpected name, a wrong shape); checked
+    when the tensors do not fit the model (a missing or unexpected name, a wrong shape, a sparse,
+    meta or complex tensor, an integer weight for a floating one); checked
     before any is copied, so a refused checkpoint leaves the model as it was."""
     state, own = ckpt["model"], model.state_dict()
     problems = [f"missing {k}" for k in own if k not in state]
@@ -182,6 +183,12 @@ def load_state(model: torch.nn.Module, ckpt: dict, path: str | os.PathLike) -> N
         f"{k}: checkpoint {tuple(state[k].shape)}, model {tuple(v.shape)}"
         for k, v in own.items()
         if k in state and state[k].shape != v.shape
+    ]
+    problems += [  # a weight is a dense real tensor of the model's kind (never cast silently)
+        f"{k}: {_tensor_kind(state[k])}, model {v.dtype}" for k, v in own.items()
+        if k in state and (state[k].layout != torch.strided or state[k].is_meta
+                           or state[k].is_complex() or state[k].is_floating_point()
+                           != v.is_floating_point())
     ]
     if problems:
         more = f"; {len(problems) - 5} more" if len(problems) > 5 else ""
@@ -192,6 +199,14 @@ def load_state(model: torch.nn.Module, ckpt: dict, path: str | os.PathLike) -> N
     except RuntimeError as err:
         detail = " ".join(str(err).split())
         raise _bad(path, "model", f"does not fit the model ({detail[:500]})") from None
+
+
+def _tensor_kind(t: torch.Tensor) -> str:
+    if t.layout != torch.strided:
+        return f"a {t.layout} tensor"
+    if t.is_meta:
+        return "a meta tensor (no data)"
+    return f"dtype {t.dtype}"
 
 
 def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:

@@ -47,3 +47,34 @@ def test_nan_weights_are_an_error_and_nothing_is_written(tmp_path, data_file):
     with pytest.raises(ValueError, match="non-finite estimates.*nothing was written"):
         apply.run([str(tmp_path / "nan.pt"), str(data_file), "--out", str(out), "--no-progress"])
     assert not out.exists()
+
+
+@pytest.mark.parametrize("bad", ["int64", "complex", "sparse", "meta"])
+def test_a_weight_of_another_kind_is_refused_naming_the_file_and_tensor(tmp_path, bad):
+    from manifold_nets import load_observer
+    from manifold_nets.checkpoint import CheckpointError
+
+    ckpt = load_checkpoint(zoo_path("rigid_body/paper") / "checkpoints" / "best.pt")
+    w = ckpt["model"]["core.head.bias"]
+    ckpt["model"]["core.head.bias"] = {
+        "int64": lambda: w.to(torch.int64), "complex": lambda: w.to(torch.complex64),
+        "sparse": lambda: w.to_sparse(), "meta": lambda: w.to("meta"),
+    }[bad]()
+    path = tmp_path / "bad.pt"
+    torch.save(ckpt, path)
+    with pytest.raises(CheckpointError, match=r"bad.pt.*core.head.bias"):
+        load_observer(path)
+
+
+def test_a_start_off_the_group_or_not_finite_is_refused():
+    from manifold_nets import load_observer
+
+    observer, system, _ = load_observer("zoo:rigid_body/paper")
+    y = torch.zeros(2, 5, 18, dtype=torch.float64)
+    state = observer.init_state(2)
+    off = state._replace(estimate=state.estimate * 2)
+    with pytest.raises(ValueError, match="off the group"):
+        observer(y, state=off)
+    nan = state._replace(estimate=state.estimate.clone().fill_(float("nan")))
+    with pytest.raises(ValueError, match="NaN or Inf"):
+        observer(y, state=nan)

@@ -87,6 +87,14 @@ def check_start(obs, state, n: int):
             f"state.estimate has shape {tuple(state.estimate.shape)}, expected {want} for {n} "
             "sequences."
         )
-    if not torch.compiler.is_compiling() and not bool(torch.isfinite(state.estimate).all()):
-        raise ValueError("state.estimate holds NaN or Inf; start from a finite element.")
+    if not torch.compiler.is_compiling():
+        if not bool(torch.isfinite(state.estimate).all()):
+            raise ValueError("state.estimate holds NaN or Inf; start from a finite element.")
+        tol = 1e-6 if state.estimate.dtype == torch.float64 else 1e-3
+        err = float(obs.group.membership_error(state.estimate.to(obs.state_dtype)).max())
+        if err > tol:
+            raise ValueError(
+                f"state.estimate is off the group {obs.group!r} (membership error {err:.3g} > "
+                f"{tol:g}); start from an element of the group, e.g. group.identity."
+            )
     return state
