@@ -48,7 +48,10 @@ from .observer import ResidualObserver
 from .plugins import locate
 from .system import SYSTEMS, System
 
-__all__ = ["LoadedObserver", "ArtefactError", "load_observer", "build_system_safely"]
+__all__ = [
+    "LoadedObserver", "ArtefactError", "LIMITS", "check_sizes", "load_observer",
+    "build_system_safely",
+]
 
 
 class ArtefactError(ValueError):
@@ -132,6 +135,28 @@ def build_system_safely(system_cfg: Any, where: str = "system") -> System:
     return system
 
 
+#: The largest sizes a file may ask for: a GRU of 16384 units is already 3 GB a layer.
+LIMITS = {"hidden_size": 16384, "num_layers": 64}
+
+
+def check_sizes(model: Any, signature: dict, where: str) -> None:
+    """Refuses, before anything is built, a model config whose core sizes exceed :data:`LIMITS`
+    or differ from the checkpoint's signature (``ArtefactError`` naming the file and the key)."""
+    core = signature.get("core") if isinstance(signature, dict) else None
+    core = core if isinstance(core, dict) else {}
+    for key, limit in LIMITS.items():
+        value = getattr(model, key, None)
+        if isinstance(value, int) and not 1 <= value <= limit:
+            raise ArtefactError(
+                f"{where}: model.{key}={value} is outside 1 .. {limit}; refused before building."
+            )
+        if key in core and core[key] != value:
+            raise ArtefactError(
+                f"{where}: model.{key}={value}, but the checkpoint's core has {core[key]}; the "
+                "config does not describe these weights (refused before building)."
+            )
+
+
 def _read_config(path: Path) -> tuple[dict, Path, dict | None]:
     """``(config, checkpoint file, checkpoint or None)`` of a run folder or a checkpoint file."""
     if path.is_dir():
@@ -178,13 +203,14 @@ def load_observer(
     except Exception as err:  # omegaconf's validation errors
         msg = str(err).splitlines()[0]
         raise ArtefactError(f"{where} does not fit the run schema: {msg}.") from None
+    if ckpt is None:
+        ckpt = load_checkpoint(ckpt_file, map_location=map_location)
+    check_sizes(cfg.model, ckpt["signature"], str(ckpt_file))  # before anything is allocated
     with warnings.catch_warnings():  # a file's first-format keys: the reader's business
         warnings.simplefilter("ignore", FutureWarning)
         model = build_observer(
             system.group, system.measurement_dim, system.input_dim, cfg.model, import_core=False,
             dt=getattr(system, "dt", None), system=system,
         )
-    if ckpt is None:
-        ckpt = load_checkpoint(ckpt_file, map_location=map_location)
     load_state(model, {**ckpt, "model": observer_state(model, ckpt, ckpt_file)}, ckpt_file)
     return LoadedObserver(model.to(map_location).eval(), system, cfg)

@@ -78,3 +78,26 @@ def test_a_start_off_the_group_or_not_finite_is_refused():
     nan = state._replace(estimate=state.estimate.clone().fill_(float("nan")))
     with pytest.raises(ValueError, match="NaN or Inf"):
         observer(y, state=nan)
+
+
+@pytest.mark.parametrize("key, value, match", [
+    ("hidden_size", 20000, "outside 1 .. 16384"), ("num_layers", 20000, "outside 1 .. 64"),
+    ("hidden_size", 129, "the checkpoint's core has 128"),
+])
+def test_a_config_asking_for_a_huge_or_other_model_is_refused_before_building(
+    tmp_path, key, value, match
+):
+    import shutil
+
+    import yaml
+
+    from manifold_nets import load_observer
+    from manifold_nets.loading import ArtefactError
+
+    folder = tmp_path / "run"
+    shutil.copytree(zoo_path("rigid_body/paper"), folder)
+    cfg = yaml.safe_load((folder / "config.yaml").read_text())
+    cfg["model"][key] = value
+    (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ArtefactError, match=match):
+        load_observer(folder)
