@@ -69,29 +69,80 @@ class LoadedObserver(NamedTuple):
     config: DictConfig
 
 
-def _check_plain(value: Any, where: str) -> None:
-    """Raises :class:`ArtefactError` unless ``value`` is plain data without interpolations."""
+#: Bounds on a config read from a file: bytes, nesting depth, nodes (mappings, lists, values).
+MAX_CONFIG_BYTES, MAX_DEPTH, MAX_NODES = 1 << 20, 32, 100_000
+
+
+def _check_plain(value: Any, where: str, _budget: list | None = None, _depth: int = 0) -> None:
+    """Raises :class:`ArtefactError` unless ``value`` is plain data without interpolations,
+    nested at most :data:`MAX_DEPTH` levels and of at most :data:`MAX_NODES` nodes (shared
+    references count each time they are reached, so a structure that shares itself 2^40 ways is
+    refused after 100000 nodes instead of walked)."""
+    budget = [MAX_NODES] if _budget is None else _budget
+    budget[0] -= 1
+    if budget[0] < 0:
+        raise ArtefactError(f"{where}: the config has more than {MAX_NODES} nodes; refused.")
+    if _depth > MAX_DEPTH:
+        raise ArtefactError(f"{where}: the config nests deeper than {MAX_DEPTH} levels; refused.")
     if value is None or isinstance(value, (bool, int, float)):
+        if isinstance(value, int) and not isinstance(value, bool) and abs(value) > 2**63:
+            raise ArtefactError(f"{where} is an integer of {value.bit_length()} bits; refused.")
         return
     if isinstance(value, str):
         if "${" in value:
             raise ArtefactError(
-                f"{where} = {value!r} is an interpolation; a resolved config holds plain values."
+                f"{where} = {value!r:.200} is an interpolation; a resolved config holds plain "
+                "values."
             )
         return
     if isinstance(value, (list, tuple)):
         for i, v in enumerate(value):
-            _check_plain(v, f"{where}[{i}]")
+            _check_plain(v, f"{where}[{i}]", budget, _depth + 1)
         return
     if isinstance(value, dict):
         for k, v in value.items():
             if not isinstance(k, str):
-                raise ArtefactError(f"{where} has a key {k!r} that is not a string.")
-            _check_plain(v, f"{where}.{k}")
+                raise ArtefactError(f"{where} has a key {k!r:.100} that is not a string.")
+            _check_plain(v, f"{where}.{k}", budget, _depth + 1)
         return
     raise ArtefactError(
         f"{where} is a {type(value).__name__}; a config file holds plain values only."
     )
+
+
+class _PlainLoader(yaml.SafeLoader):
+    """``yaml.SafeLoader`` without aliases (a billion-laughs file is refused, not expanded) and
+    with a bound on nesting."""
+
+    def compose_node(self, parent, index):
+        if self.check_event(yaml.AliasEvent):
+            event = self.peek_event()
+            raise yaml.YAMLError(f"an alias (*{event.anchor}) at {event.start_mark}: a resolved "
+                                 "config has none")
+        self._depth = getattr(self, "_depth", 0) + 1
+        try:
+            if self._depth > MAX_DEPTH:
+                raise yaml.YAMLError(f"nesting deeper than {MAX_DEPTH} levels")
+            return super().compose_node(parent, index)
+        finally:
+            self._depth -= 1
+
+
+def read_plain_yaml(path: Path) -> Any:
+    """A config file as plain data: at most :data:`MAX_CONFIG_BYTES`, UTF-8, YAML without aliases,
+    nested at most :data:`MAX_DEPTH` levels; :class:`ArtefactError` naming the file otherwise."""
+    size = path.stat().st_size
+    if size > MAX_CONFIG_BYTES:
+        raise ArtefactError(f"{path} is {size} bytes; a config is at most {MAX_CONFIG_BYTES}.")
+    try:
+        text = path.read_bytes().decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ArtefactError(f"{path} is not UTF-8 text ({err.reason} at byte {err.start}).") from None
+    try:
+        return yaml.load(text, Loader=_PlainLoader)  # noqa: S506 - a SafeLoader subclass
+    except (yaml.YAMLError, ValueError, RecursionError) as err:
+        detail = " ".join(str(err).split())[:300]
+        raise ArtefactError(f"{path} is not a plain YAML config ({detail}).") from None
 
 
 def _check_parameter(value: Any, where: str) -> None:
@@ -165,11 +216,7 @@ def _read_config(path: Path) -> tuple[dict, Path, dict | None]:
         if not cfg_file.is_file():
             ckpt = load_checkpoint(ckpt_file)
             return ckpt.get("config"), ckpt_file, ckpt
-        try:
-            cfg = yaml.safe_load(cfg_file.read_text())
-        except yaml.YAMLError as err:
-            raise ArtefactError(f"{cfg_file} is not plain YAML ({err}).") from None
-        return cfg, ckpt_file, None
+        return read_plain_yaml(cfg_file), ckpt_file, None
     if not path.exists():
         raise ArtefactError(f"{path} is neither a run folder nor a checkpoint file.")
     ckpt = load_checkpoint(path)
