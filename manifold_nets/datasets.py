@@ -90,9 +90,20 @@ def _request(cfg: DatasetConfig) -> dict:
     return request
 
 
+#: The most steps one dataset may hold (``num_sequences * length``): 2e7 steps of the rigid
+#: body are 2.9 GB of float64 states; the paper's largest set holds 2e6.
+MAX_STEPS = 20_000_000
+
+
 def _check_request(num_sequences, length, sigma, seed, splits) -> None:
     check_positive_int("num_sequences", num_sequences)
     check_positive_int("length", length)
+    if num_sequences * length > MAX_STEPS:
+        raise DatasetError(
+            f"num_sequences x length = {num_sequences} x {length} is more than {MAX_STEPS:.0e} "
+            "steps (manifold_nets.datasets.MAX_STEPS); ask for fewer or shorter sequences (or "
+            "stream them: train.stream=true draws fresh ones every epoch)."
+        )
     check_sigma(sigma)
     if isinstance(seed, bool) or not isinstance(seed, int) or not 0 <= seed < 2**63:
         raise DatasetError(f"seed must be an integer in [0, 2**63), got {seed!r}.")

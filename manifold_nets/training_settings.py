@@ -34,6 +34,11 @@ def check_schedule(schedule: str, lr: float, lr_min: float = 0.0) -> None:
         )
 
 
+#: The largest noise level a setting may ask for (the measurements' units; the rigid body's
+#: readings are of order 1).
+MAX_SIGMA = 1e3
+
+
 def check_settings(settings: TrainSettings) -> TrainSettings:
     """Raises ``ValueError`` naming the setting unless ``settings`` can train; returns them.
 
@@ -79,6 +84,27 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
         ):
             raise ValueError(
                 f"param_lr[{prefix!r}] must be a positive learning rate, got {rate!r}."
+            )
+    wd = settings.weight_decay
+    if isinstance(wd, bool) or not isinstance(wd, (int, float)) or not (
+        math.isfinite(wd) and wd >= 0
+    ):
+        raise ValueError(f"weight_decay must be a finite number >= 0 (AdamW's), got {wd!r}.")
+    noise = settings.noise
+    lo, hi = noise.sigma_min, noise.sigma_max
+    for name, val in (("noise.sigma_min", lo), ("noise.sigma_max", hi)):
+        if isinstance(val, bool) or not isinstance(val, (int, float)) or not (
+            math.isfinite(val) and 0 <= val <= MAX_SIGMA
+        ):
+            raise ValueError(f"{name} must be a number in [0, {MAX_SIGMA:g}], got {val!r}.")
+    if hi and lo > hi:
+        raise ValueError(f"noise.sigma_min={lo} is above noise.sigma_max={hi}.")
+    for level in noise.levels:
+        if isinstance(level, bool) or not isinstance(level, (int, float)) or not (
+            math.isfinite(level) and 0 <= level <= MAX_SIGMA
+        ):
+            raise ValueError(
+                f"noise.levels must hold numbers in [0, {MAX_SIGMA:g}], got {level!r}."
             )
     if settings.loss not in LOSSES:
         raise ValueError(

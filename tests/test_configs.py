@@ -310,6 +310,17 @@ def test_multirun_and_sweep_table(tmp_path):
         ("system.bias_range=100", "RigidBody: one step can turn by up to sqrt(3) * (omega_range "
                                   "+ bias_range) * dt = sqrt(3) * (1 + 100) * 0.1 = 17.49 rad"),
         ("system.dt=1e300", "RigidBody: one step can turn by up to"),
+        ("train.noise.sigma_max=nan", "train.noise.sigma_max must be a number in [0, 1000]"),
+        ("train.noise.sigma_max=inf", "train.noise.sigma_max must be a number in [0, 1000]"),
+        ("train.weight_decay=-1", "train.weight_decay must be a finite number >= 0"),
+        ("train.weight_decay=nan", "train.weight_decay must be a finite number >= 0"),
+        ("eval.skip_steps=16", "eval.skip_steps=16 leaves no step of eval.length=16"),
+        ("train.skip_steps=9", "train.skip_steps=9 is longer than a training sequence"),
+        ("++train.param_lr={nope:0.1}", "train.param_lr['nope'] names no parameter"),
+        ("eval.seed=-1", "eval.seed must be an integer >= 0"),
+        ("eval.length=0", "eval.length must be an integer >= 1"),
+        ("eval.sigmas=[1e300]", "eval.sigmas must be finite numbers in [0, 1000]"),
+        ("dataset.length=1000000000", "dataset.num_sequences x dataset.length = 40 x 1000000000"),
     ],
 )
 def test_nonsense_values_fail_before_any_work_and_write_nothing(tmp_path, override, message):

@@ -55,11 +55,14 @@ def to_json(value: Any, **kwargs) -> str:
 
 
 def check_sigmas(sigmas: Sequence[float]) -> list[float]:
-    """The noise levels as floats; ``ValueError`` unless each is finite and ``>= 0``."""
+    """The noise levels as floats; ``ValueError`` unless each is finite, ``>= 0`` and at most
+    :data:`~manifold_nets.training_settings.MAX_SIGMA`."""
+    from manifold_nets.training_settings import MAX_SIGMA
+
     out = [float(s) for s in sigmas]
     for s in out:
-        if not (math.isfinite(s) and s >= 0):
-            raise ValueError(f"eval.sigmas must be finite and >= 0, got {s!r}.")
+        if not (math.isfinite(s) and 0 <= s <= MAX_SIGMA):
+            raise ValueError(f"eval.sigmas must be finite numbers in [0, {MAX_SIGMA:g}], got {s!r}.")
     if not out:
         raise ValueError("eval.sigmas is empty; name at least one noise level, e.g. [0.1].")
     return out

@@ -45,6 +45,7 @@ from manifold_nets.reporting import plot_errors, write_table
 from manifold_nets.streaming import SimulatedStream
 from manifold_nets.tensorboard_log import TensorBoardLog, check_tensorboard
 from manifold_nets.training import EpochCallback, check_settings, fit, validation_loss
+from manifold_nets.training_settings import param_groups
 
 from .common import absolute, check_config, check_sigmas, to_json
 
@@ -76,6 +77,30 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
             "train.epochs=0 trains nothing: it evaluates train.init_from's weights as they are "
             "(e.g. under another centring, model.head, or step decay, model.scales, which add no "
             "weight); give train.init_from=<run folder or checkpoint>, or set train.epochs >= 1."
+        )
+    e = cfg.eval
+    for key, value, low in (("eval.length", e.length, 1), ("eval.num_sequences", e.num_sequences, 1),
+                            ("eval.seed", e.seed, 0), ("eval.skip_steps", e.skip_steps, 0)):
+        if isinstance(value, bool) or not isinstance(value, int) or not low <= value < 2**63:
+            raise ValueError(f"{key} must be an integer >= {low}, got {value!r}.")
+    from manifold_nets.datasets import MAX_STEPS
+
+    for key, n, length in (("dataset", cfg.dataset.num_sequences, cfg.dataset.length),
+                           ("eval", e.num_sequences, e.length)):
+        if n * length > MAX_STEPS:
+            raise ValueError(
+                f"{key}.num_sequences x {key}.length = {n} x {length} is more than "
+                f"{MAX_STEPS:.0e} steps; ask for fewer or shorter sequences."
+            )
+    if e.skip_steps >= e.length:
+        raise ValueError(
+            f"eval.skip_steps={e.skip_steps} leaves no step of eval.length={e.length} to "
+            "evaluate; use eval.skip_steps < eval.length."
+        )
+    if _trains(cfg) and not cfg.data_file and cfg.train.skip_steps > cfg.dataset.length:
+        raise ValueError(
+            f"train.skip_steps={cfg.train.skip_steps} is longer than a training sequence "
+            f"(dataset.length={cfg.dataset.length}): no step would be in the loss."
         )
     if cfg.train.init_from and cfg.train.resume:
         raise ValueError(
@@ -183,6 +208,13 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     if cfg.method.name not in LEARNED_METHODS or cfg.method.target:
         build_estimator_factory(system, cfg.method)  # an unknown method: refused now
     _check_checkpoints(cfg)
+    if _trains(cfg) and cfg.train.param_lr:  # an unknown name: refused before the run folder
+        model = build_observer(system.group, system.measurement_dim, system.input_dim, cfg.model,
+                               dt=getattr(system, "dt", None), system=system)
+        try:
+            param_groups(model, float(cfg.train.lr), dict(cfg.train.param_lr))
+        except ValueError as err:
+            raise ValueError(f"train.{err}") from None
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = OmegaConf.to_container(cfg, resolve=True)
