@@ -40,6 +40,13 @@ def test_resume_through_the_config(tmp_path):
     assert m["best_epoch"] in (0, 1, 2)
     ckpt = torch.load(tmp_path / "second" / "checkpoints" / "last.pt", weights_only=True)
     assert ckpt["epoch"] == 2 and ckpt["config"]["train"]["epochs"] == 2
+    # other data: refused before any work (the best model would be chosen across two sets)
+    for change in ("dataset.seed=3", "dataset.sigma=0.2"):
+        with pytest.raises(ValueError, match=r"continues a run on its own data.*"
+                                             + change.split("=")[0].replace(".", r"\.")):
+            run(_compose(*_tiny(cache, "train.epochs=3", change,
+                                f"train.resume={tmp_path / 'second'}")), tmp_path / "third")
+        assert not (tmp_path / "third").exists()
 
 
 def test_init_from_fine_tunes_a_trained_model_on_other_data(tmp_path):

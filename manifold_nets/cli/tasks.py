@@ -247,7 +247,34 @@ def _check_checkpoints(cfg: DictConfig) -> None:
         if cfg.train.init_from:
             load_checkpoint(resolve_checkpoint(absolute(cfg.train.init_from), name="best.pt"))
         if cfg.train.resume:
-            load_checkpoint(resolve_checkpoint(absolute(cfg.train.resume), name="last.pt"))
+            path = resolve_checkpoint(absolute(cfg.train.resume), name="last.pt")
+            _same_data(cfg, load_checkpoint(path)["config"], path)
+
+
+#: What decides a run's data: resuming on other data would pick the best model by comparing
+#: validation losses of two different sets.
+_DATA_KEYS = ("dataset.num_sequences", "dataset.length", "dataset.sigma", "dataset.seed",
+              "dataset.splits", "data_file", "train.noise", "train.stream", "system")
+
+
+def _same_data(cfg: DictConfig, old: dict, path) -> None:
+    """Refuses ``train.resume`` of a run whose data this config would change."""
+    now = OmegaConf.to_container(cfg, resolve=True)
+    diff = []
+    for key in _DATA_KEYS:
+        a, b = old, now
+        for part in key.split("."):
+            a = a.get(part) if isinstance(a, dict) else None
+            b = b.get(part) if isinstance(b, dict) else None
+        if a != b:
+            diff.append(f"{key}: the run's {a!r:.80}, now {b!r:.80}")
+    if diff:
+        raise ValueError(
+            f"train.resume={str(path)!r} continues a run on its own data, but this config "
+            f"changes it ({'; '.join(diff)}); its best model would be chosen between validation "
+            "losses of two different sets. Resume with the run's data settings, or start a new "
+            "run from its weights: train.init_from=<the run>."
+        )
 
 
 def _checkpoint_model(where: str) -> DictConfig:
