@@ -18,16 +18,17 @@ module, each importing only the ones before it:
 * :mod:`~groups.testing.properties`: the axioms, one function each;
 * :mod:`~groups.testing.runner`: one public ``check_*`` per axiom, and :func:`check_group`.
 
-hypothesis is a *dev* dependency (``pip install -e '.[dev]'``). It is imported here and only
-here: ``import groups`` never imports this package, so the library itself runs without it.
+hypothesis comes with the ``testing`` extra (``pip install 'manifold_nets[testing]'``). It is
+imported here and only here: ``import groups`` never imports this package, so the library itself
+runs without it.
 """
 
 try:
     import hypothesis  # noqa: F401 - only to fail early with the fix
 except ImportError as _err:  # pragma: no cover - depends on the environment
     raise ImportError(
-        "groups.testing needs hypothesis, a dev dependency of manifold_nets: install it with "
-        "`pip install -e '.[dev]'` or `pip install 'hypothesis>=6.100'`."
+        "groups.testing needs hypothesis, which the `testing` extra brings: "
+        "`pip install 'manifold_nets[testing]'` (from a checkout: `pip install -e '.[testing]'`)."
     ) from _err
 
 from .comparison import TOLERANCES, CheckResult, Tolerances
