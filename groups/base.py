@@ -162,6 +162,8 @@ class LieGroup(abc.ABC):
         """
         self.check_element(x, "adjoint")
         batch = x.shape[: x.dim() - len(self.element_shape)]
+        if not batch:  # 0-dim arithmetic can promote dtypes under forward AD: a batch of one
+            return LieGroup.adjoint(self, x.unsqueeze(0))[0]
         x_inv = self.inverse(x)
 
         def conj(v: torch.Tensor) -> torch.Tensor:
@@ -173,7 +175,9 @@ class LieGroup(abc.ABC):
             torch.func.jvp(conj, (zero,), (eye[i].expand_as(zero),))[1]
             for i in range(self.tangent_dim)
         ]
-        return torch.stack(cols, dim=-1)
+        # a subclass's scalar arithmetic on 0-dim tensors may promote under forward AD: the
+        # matrix is in the element's dtype whatever the subclass computed in
+        return torch.stack(cols, dim=-1).to(x.dtype)
 
     def random(
         self,

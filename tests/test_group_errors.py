@@ -279,3 +279,20 @@ def test_log_of_a_reflection_is_documented_and_refused_at_the_door(dtype: torch.
     assert "undefined" in doc and "from_embedding" in doc and "check_member" in doc
     with pytest.raises(GroupMembershipError, match=r"The worst has det -1 \(a reflection"):
         SO3().from_embedding(reflection.flatten())
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+@pytest.mark.parametrize("batch", [(), (3,)])
+def test_the_generic_adjoint_keeps_the_dtype_and_matches_the_closed_forms(dtype, batch):
+    """The base class's adjoint (forward-mode autograd) for a subclass without a closed form:
+    with batch shape () a 0-dim tensor's scalar arithmetic once promoted float32 to float64
+    under forward AD (SE(3)'s exp then failed on a matrix product of mixed dtypes)."""
+    from groups import SE2, SE3, SO2, SO3
+    from groups.base import LieGroup
+
+    tol = 2e-6 if dtype == torch.float32 else 1e-12
+    for G in (SO2(), SO3(), SE2(), SE3()):
+        x = G.random(batch, generator=torch.Generator().manual_seed(0), dtype=dtype)
+        generic = LieGroup.adjoint(G, x)
+        assert generic.dtype == dtype and generic.shape == (*batch, G.tangent_dim, G.tangent_dim)
+        assert float((generic - G.adjoint(x)).abs().max()) < tol, G
