@@ -78,6 +78,11 @@ class LieGroup(abc.ABC):
     #: ``groups.testing.check_embedding``; the observer then feeds the flat state to its network
     #: without embedding it factor by factor.
     embedding_is_flat: bool = False
+    #: Whether ``embed(x)`` is a square matrix (flattened row-major) that represents ``x``:
+    #: ``compose`` is then its matrix product, which ``groups.testing`` checks (a group of your
+    #: own that is not a :class:`MatrixLieGroup` but embeds as one should say so: without a
+    #: matrix form the suite cannot tell ``compose`` from its opposite, itself a valid group).
+    embedding_is_matrix: bool = False
 
     # ------------------------------------------------------------------ minimum API
 

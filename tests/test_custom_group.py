@@ -205,6 +205,14 @@ class ColumnMajorSO3(SO3):
         return super().unembed(z).transpose(-1, -2)
 
 
+class SwappedComposeSO3(SO3):
+    """``compose(x, y) = y x``: the opposite group, itself a valid group; only the matrix form
+    tells it from SO(3)."""
+
+    def compose(self, x, y):
+        return y @ x
+
+
 class FlatClaimSE2(SE2):
     """Declares ``embedding_is_flat``, but embeds ``(R, t)`` in 6 numbers, not the 9 of a 3 x 3
     element."""
@@ -223,6 +231,7 @@ BROKEN = [
     (InPlaceInverse(), ["membership"], "membership", "in place"),
     (ColumnMajorSO3(), ["embedding"], "embedding", "embedding_is_flat is True, but embed(x)"),
     (FlatClaimSE2(), ["embedding"], "embedding", "embedding_is_flat is True, but embedding_dim"),
+    (SwappedComposeSO3(), ["matrix_compose"], "matrix_compose", "matrix(x) @ matrix(y)"),
 ]
 
 

@@ -48,6 +48,7 @@ from .runner import (
     check_inverse,
     check_log_exp,
     check_matrix_exp,
+    check_matrix_compose,
     check_membership,
     check_rplus_rminus,
 )
@@ -82,6 +83,7 @@ __all__ = [
     "check_exp_log",
     "check_log_exp",
     "check_matrix_exp",
+    "check_matrix_compose",
     "check_adjoint",
     "check_embedding",
     "check_rplus_rminus",

@@ -217,6 +217,30 @@ def matrix_exp(c: Case, data) -> None:
     c.close_tangent("vee(hat(v)) == v", G.vee(G.hat(v)), v, inputs={"v": v})
 
 
+def matrix_compose(c: Case, data) -> None:
+    """``compose(x, y)`` is the matrix product where the group has a matrix form: a
+    :class:`~groups.MatrixLieGroup`'s elements, or an embedding that is one
+    (``embedding_is_matrix``). Without one the suite cannot tell ``compose`` from its opposite
+    (``compose(y, x)`` is a valid group too, and the generic adjoint follows it): skipped."""
+    G = c.group
+    if isinstance(G, MatrixLieGroup):
+        def as_matrix(x):
+            return x
+    elif getattr(G, "embedding_is_matrix", False):
+        d = math.isqrt(G.embedding_dim)
+
+        def as_matrix(x):
+            return G.embed(x).unflatten(-1, (d, d))
+    else:
+        c.result.skipped = "no matrix form (embedding_is_matrix is False)"
+        return
+    x, y = c.x(data, "x"), c.x(data, "y")
+    mx, my = as_matrix(x), as_matrix(y)
+    c.close("matrix(compose(x, y)) == matrix(x) @ matrix(y)", as_matrix(G.compose(x, y)),
+            mx @ my, trailing=2, scale=magnitude(mx, 2) * magnitude(my, 2),
+            inputs={"x": x, "y": y})
+
+
 def adjoint(c: Case, data) -> None:
     """``x exp(v) x^-1 = exp(Ad_x v)``, ``Ad_{xy} = Ad_x Ad_y``, ``Ad_x Ad_{x^-1} = I``."""
     G, k = c.group, c.group.tangent_dim
@@ -469,6 +493,7 @@ PROPERTIES: dict[str, Callable[[Case, object], None]] = {
     "exp_log": exp_log,
     "log_exp": log_exp,
     "matrix_exp": matrix_exp,
+    "matrix_compose": matrix_compose,
     "adjoint": adjoint,
     "embedding": embedding,
     "rplus_rminus": rplus_rminus,

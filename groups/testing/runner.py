@@ -172,6 +172,15 @@ def check_matrix_exp(
     return run_property("matrix_exp", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
+def check_matrix_compose(
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
+) -> CheckResult:
+    """``compose(x, y)`` against the matrix product, for a :class:`~groups.MatrixLieGroup` or a
+    group whose embedding is a matrix (``embedding_is_matrix``). Skipped otherwise: then the
+    suite cannot tell ``compose`` from its opposite."""
+    return run_property("matrix_compose", group, dtype=dtype, batch_shape=batch_shape, **options)
+
+
 def check_adjoint(
     group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
@@ -238,6 +247,7 @@ CHECKS: dict[str, Callable[..., CheckResult]] = {
     "exp_log": check_exp_log,
     "log_exp": check_log_exp,
     "matrix_exp": check_matrix_exp,
+    "matrix_compose": check_matrix_compose,
     "adjoint": check_adjoint,
     "embedding": check_embedding,
     "rplus_rminus": check_rplus_rminus,
