@@ -83,6 +83,11 @@ class LieGroup(abc.ABC):
     #: own that is not a :class:`MatrixLieGroup` but embeds as one should say so: without a
     #: matrix form the suite cannot tell ``compose`` from its opposite, itself a valid group).
     embedding_is_matrix: bool = False
+    #: The scales of the non-angle tangent coordinates at which ``exp`` is meaningful, for the
+    #: axiom suite (``groups.testing``) to draw at; ``None``: its defaults, (0, 1e-3, 1, 1e3).
+    #: A group whose ``exp`` grows exponentially (a scale direction, ``e^lambda``) declares
+    #: smaller ones, e.g. ``(0.0, 1e-3, 0.1, 3.0)``.
+    tangent_magnitudes: tuple[float, ...] | None = None
 
     # ------------------------------------------------------------------ minimum API
 

@@ -74,6 +74,8 @@ class PositiveAffine1D(MatrixLieGroup):
     matrix_dim = 2
     tangent_dim = 2
     embedding_dim = 4
+    #: exp grows like e^alpha: a magnitude of 1e3 would overflow, so the largest is 3
+    tangent_magnitudes = (0.0, 1e-3, 1.0, 3.0)
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
         self.check_tangent(v, "hat")
@@ -111,10 +113,18 @@ class PositiveAffine1D(MatrixLieGroup):
 
 
 def test_positive_affine_group_passes_check_group() -> None:
-    # exp grows like e^alpha: a magnitude of 1e3 would overflow, so the largest is 3.
-    results = check_group(PositiveAffine1D(), magnitudes=(0.0, 1e-3, 1.0, 3.0))
+    # its declared tangent_magnitudes are the suite's defaults for it
+    results = check_group(PositiveAffine1D())
     assert all(r.worst_ratio <= 1.0 for r in results)
     assert any(r.prop == "matrix_exp" and not r.skipped for r in results)
+
+
+def test_an_exponential_group_without_declared_magnitudes_says_how_to_fix_it() -> None:
+    class Undeclared(PositiveAffine1D):
+        tangent_magnitudes = None
+
+    with pytest.raises(AssertionError, match="declare the group's tangent_magnitudes"):
+        check_group(Undeclared(), checks=["membership"], dtypes=(torch.float32,))
 
 
 # ---------------------------------------------------------------------------------- broken groups

@@ -85,7 +85,10 @@ def membership(c: Case, data) -> None:
                 if not _unchanged(before, inputs[arg]):
                     c.fail(f"{name} modified its input {arg} in place")
             c.shape(name, out, trailing)
-            c.finite(f"{name} returned NaN or Inf", out, len(trailing), inputs=shown)
+            big = any(t.is_floating_point() and bool((t.abs() > 30).any()) for t in shown.values())
+            hint = (" (from large tangent vectors: if exp grows exponentially, declare the "
+                    "group's tangent_magnitudes or pass magnitudes=)") if big else ""
+            c.finite(f"{name} returned NaN or Inf{hint}", out, len(trailing), inputs=shown)
             if is_element:
                 err = G.membership_error(out)
                 c.shape(f"membership_error({name})", err, ())

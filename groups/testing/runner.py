@@ -72,18 +72,19 @@ def run_property(
     dtype: torch.dtype = torch.float64,
     batch_shape: Sequence[int] = (),
     max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
+    magnitudes: Sequence[float] | None = None,
     derandomize: bool = True,
     grid: bool = True,
 ) -> CheckResult:
     """Runs property ``prop`` (a name in :data:`~groups.testing.properties.PROPERTIES`) as the
     module docstring describes; what every ``check_*`` calls, with its ``**options``:
-    ``max_examples`` (hypothesis examples), ``magnitudes`` (tangent-vector scales),
+    ``max_examples`` (hypothesis examples), ``magnitudes`` (tangent-vector scales; default the
+    group's ``tangent_magnitudes`` when it declares them, else :data:`MAGNITUDES`),
     ``derandomize`` (reproducible examples) and ``grid`` (the adversarial batch first)."""
     if not isinstance(group, LieGroup):
         raise TypeError(f"check_{prop} needs a LieGroup instance, got {group!r}.")
     bs = tuple(int(b) for b in batch_shape)
-    mags = tuple(magnitudes)
+    mags = tuple(default_magnitudes(group) if magnitudes is None else magnitudes)
     result = CheckResult(prop=prop, group=repr(group), dtype=dtype, batch_shape=bs)
 
     def once(case: Case, data) -> None:
@@ -259,12 +260,19 @@ CHECKS: dict[str, Callable[..., CheckResult]] = {
 assert list(CHECKS) == list(PROPERTIES), "one check_* per property, in the same order"
 
 
+def default_magnitudes(group: LieGroup) -> tuple[float, ...]:
+    """The tangent scales the suite draws at: the group's ``tangent_magnitudes`` when it
+    declares them (a group whose ``exp`` grows exponentially), else :data:`MAGNITUDES`."""
+    declared = getattr(group, "tangent_magnitudes", None)
+    return tuple(MAGNITUDES if not declared else declared)
+
+
 def check_group(
     group: LieGroup,
     dtypes: Iterable[torch.dtype] = (torch.float32, torch.float64),
     batch_shapes: Iterable[Sequence[int]] = BATCH_SHAPES,
     max_examples: int = DEFAULT_MAX_EXAMPLES,
-    magnitudes: Sequence[float] = MAGNITUDES,
+    magnitudes: Sequence[float] | None = None,
     checks: Iterable[str] | None = None,
     derandomize: bool = True,
 ) -> list[CheckResult]:
@@ -276,8 +284,9 @@ def check_group(
         batch_shapes: batch shapes of the drawn elements and tangent vectors. The adversarial
             grid runs once per dtype, with the first of them.
         max_examples: hypothesis examples per property, dtype and batch shape.
-        magnitudes: scales of the non-angle tangent coordinates; lower the largest one for a
-            group whose ``exp`` grows exponentially (e.g. positive reals under multiplication).
+        magnitudes: scales of the non-angle tangent coordinates (default: the group's
+            ``tangent_magnitudes`` when it declares them, else :data:`MAGNITUDES`); a group
+            whose ``exp`` grows exponentially (a scale, e^lambda) declares smaller ones.
         checks: names from :data:`CHECKS` to run (default: all).
         derandomize: fixed hypothesis examples (reproducible); False explores new ones each run.
 
