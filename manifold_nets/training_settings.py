@@ -85,6 +85,27 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
             raise ValueError(
                 f"param_lr[{prefix!r}] must be a positive learning rate, got {rate!r}."
             )
+    _check_regularisation(settings)
+    if settings.loss not in LOSSES:
+        raise ValueError(
+            f"loss={settings.loss!r} is not a training loss; choose one of {', '.join(LOSSES)}."
+        )
+    skip = settings.skip_steps
+    if not _is_int(skip) or skip < 1:
+        raise ValueError(
+            f"skip_steps must be an integer >= 1 (1: only the fixed start x_0 is left out of the "
+            f"loss), got {skip!r}."
+        )
+    if settings.tbptt is not None and skip > settings.tbptt:
+        raise ValueError(
+            f"skip_steps={skip} is longer than a truncated-BPTT piece (tbptt={settings.tbptt}): "
+            "the first piece would have no step in the loss; use skip_steps <= tbptt."
+        )
+    return settings
+
+
+def _check_regularisation(settings: TrainSettings) -> None:
+    """``weight_decay`` and the training noise (``noise.*``): finite and in range."""
     wd = settings.weight_decay
     if isinstance(wd, bool) or not isinstance(wd, (int, float)) or not (
         math.isfinite(wd) and wd >= 0
@@ -106,22 +127,6 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
             raise ValueError(
                 f"noise.levels must hold numbers in [0, {MAX_SIGMA:g}], got {level!r}."
             )
-    if settings.loss not in LOSSES:
-        raise ValueError(
-            f"loss={settings.loss!r} is not a training loss; choose one of {', '.join(LOSSES)}."
-        )
-    skip = settings.skip_steps
-    if not _is_int(skip) or skip < 1:
-        raise ValueError(
-            f"skip_steps must be an integer >= 1 (1: only the fixed start x_0 is left out of the "
-            f"loss), got {skip!r}."
-        )
-    if settings.tbptt is not None and skip > settings.tbptt:
-        raise ValueError(
-            f"skip_steps={skip} is longer than a truncated-BPTT piece (tbptt={settings.tbptt}): "
-            "the first piece would have no step in the loss; use skip_steps <= tbptt."
-        )
-    return settings
 
 
 def _is_int(val) -> bool:

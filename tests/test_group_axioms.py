@@ -50,7 +50,8 @@ def _axiom_params() -> list:
         for dtype in DTYPES:
             for bs in BATCH_SHAPES:
                 for prop in CHECKS:
-                    if prop == "matrix_exp" and not isinstance(group, MatrixLieGroup):
+                    matrix_only = prop in ("matrix_exp", "matrix_compose")
+                    if matrix_only and not isinstance(group, MatrixLieGroup):
                         continue
                     if prop == "gradcheck" and dtype != torch.float64:
                         continue
@@ -73,7 +74,7 @@ def test_check_group_is_one_call_over_everything() -> None:
     seen = {(r.prop, r.dtype, r.batch_shape) for r in results}
     assert seen == {(p, d, bs) for p in CHECKS for d in DTYPES for bs in BATCH_SHAPES}
     assert all(r.worst_ratio <= 1.0 for r in results)
-    assert {r.prop for r in results if r.skipped} == {"matrix_exp", "gradcheck"}
+    assert {r.prop for r in results if r.skipped} == {"matrix_exp", "matrix_compose", "gradcheck"}
 
 
 # ---------------------------------------------------------------------------------- strategies
