@@ -176,3 +176,25 @@ def test_the_onnx_step_runs_in_onnxruntime_like_the_eager_step(tmp_path):
         outs.append(torch.from_numpy(state[0]))
     err = max(float((a - b).abs().max()) for a, b in zip(outs, _eager(obs, ys.float())))
     assert err < 1e-4, err  # float32 state: 50 steps of float32 rounding, in another runtime
+
+
+def test_the_exported_step_reads_a_strided_view_like_a_contiguous_one(tmp_path):
+    """A row of a bigger array (here every other column of a wider one, strides (36, 2)) gives
+    the estimates a contiguous copy gives: the step makes its inputs contiguous."""
+    from manifold_nets import load_observer
+    from manifold_nets.deploy import export_observer, load_exported_step
+
+    observer, system, _ = load_observer("zoo:rigid_body/paper")
+    data = system.simulate(2, 6, 0.1, torch.Generator().manual_seed(0))
+    wide = torch.zeros(2, 6, 36, dtype=torch.float64)
+    wide[..., ::2] = data.measurements
+    export_observer(observer, tmp_path / "step.pt2")
+    step = load_exported_step(tmp_path / "step.pt2")
+    x, *hidden = step.initial_state(2)
+    xs, *hs = step.initial_state(2)
+    for k in range(6):
+        strided = wide[:, k, ::2]
+        assert not strided.is_contiguous()
+        x, *hidden = step(x, *hidden, strided.contiguous())
+        xs, *hs = step(xs, *hs, strided)
+        assert torch.equal(x, xs)
