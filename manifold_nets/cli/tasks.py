@@ -281,10 +281,11 @@ def _checkpoint_model(where: str) -> DictConfig:
     """The model config a checkpoint was written with (its ``config.model``), checked against
     the schema; the observer ``eval.checkpoint`` names is built from it, not from the command's
     ``model``."""
-    from manifold_nets.loading import ArtefactError, _check_plain
+    from manifold_nets.loading import ArtefactError, _check_plain, check_sizes
 
     path = resolve_checkpoint(absolute(where), name="best.pt")
-    raw = load_checkpoint(path)["config"].get("model")
+    ckpt = load_checkpoint(path)
+    raw = ckpt["config"].get("model")
     if not isinstance(raw, dict):
         raise ArtefactError(f"{path} holds no model config; it cannot be evaluated by itself.")
     _check_plain(raw, f"{path}: model")
@@ -293,6 +294,7 @@ def _checkpoint_model(where: str) -> DictConfig:
     except Exception as err:  # omegaconf's validation errors
         msg = str(err).splitlines()[0]
         raise ArtefactError(f"{path}: its model config does not fit the schema: {msg}.") from None
+    check_sizes(model, ckpt["signature"], str(path))  # before anything is built
     log.info("eval.checkpoint=%s: the observer its own config describes", where)
     return model
 
