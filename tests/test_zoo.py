@@ -3,9 +3,10 @@
 Each entry loads by name (``zoo:rigid_body/nominal``) without an import by hand and without
 executing anything its files name, and reproduces the outputs recorded before the observer was
 rebuilt from pieces (``tests/fixtures/zoo_reference.npz``, by
-``tests/fixtures/record_zoo_reference.py``): its rollout and online step to 1e-10, and its exported
-step the rollout to 1e-10 (the old exported step computed the centring ramp in float32 and was
-up to 1.7e-6 off the rollout; today all three share one schedule). On fresh data of its own
+``tests/fixtures/record_zoo_reference.py``; ``rigid_body/paper`` when it entered the zoo): its
+rollout and online step to 1e-10, and its exported step the rollout to 1e-10 (the old exported
+step computed the centring ramp in float32 and was up to 1.7e-6 off the rollout; today all three
+share one schedule). On fresh data of its own
 system each entry beats the raw measurement.
 """
 
