@@ -8,6 +8,7 @@ errors. The commands call these; so can a user's own script.
 
 from __future__ import annotations
 
+import functools
 import inspect
 import warnings
 from collections.abc import Callable
@@ -147,6 +148,7 @@ def build_observer(
         torch_dtype(model.state_dtype, "model.state_dtype"),
     )
     bound = measurement.bind(group)
+    # bound here first only so that an error names its block; the observer binds them again
     for where, piece in [("model.prior", prior), ("model.head", head)] + [
         (f"model.features[{i}]", f) for i, f in enumerate(features)
     ] + [(f"model.scales[{i}]", s) for i, s in enumerate(scales)]:
@@ -154,14 +156,10 @@ def build_observer(
             piece.bind(group, bound)
         except ValueError as err:
             raise ValueError(f"{where} ({piece.name}): {err}") from None
-    width = sum(f.width for f in features)
-    core = _core_class(model.core, import_core)(
-        width,
-        head.output_size(group.tangent_dim, bound.innovation_dim),
-        hidden_size=model.hidden_size,
+    core = functools.partial(  # the observer sizes it and starts it where the head says
+        _core_class(model.core, import_core), hidden_size=model.hidden_size,
         num_layers=model.num_layers,
     )
-    head.reset(core)
     observer = ResidualObserver(
         group, measurement, core, update=update, prior=prior, features=features, head=head,
         scales=scales,

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import torch
 
-from .piece import Piece, check_factor, check_int, check_number
+from .piece import Piece, check_factor, check_int, check_number, check_spans
 from .robust import RobustWeights, safe_norm
 
 __all__ = ["Measurement", "RobustMeasurement", "StepView"]
@@ -70,15 +70,7 @@ class Measurement(Piece):
         super().__init__()
         self.dim = check_int("Measurement: dim", dim, 1)
         self.input_dim = check_int("Measurement: input_dim", input_dim, 0)
-        self.factors = {}
-        for fname, span in dict(factors or {}).items():
-            try:
-                a, b = (int(i) for i in span)
-            except (TypeError, ValueError):
-                raise ValueError(
-                    f"measurement factors[{fname!r}] must be (start, stop) in y, got {span!r}."
-                ) from None
-            self.factors[str(fname)] = (a, b)
+        self.factors = check_spans("measurement factors", factors, "y")
 
     def bind(self, group, measurement=None) -> Measurement:
         for fname, (a, b) in self.factors.items():
@@ -106,13 +98,17 @@ class Measurement(Piece):
         in the state dtype, as given."""
         return [f.unembed(ys[..., s]) for f, _, s in self.spans]
 
-    def view(self, x: torch.Tensor, yu: torch.Tensor, measured) -> StepView:
-        """The step's view at the prediction ``x`` (flat, state dtype) of ``(y, u)`` ``yu``
-        (network dtype) and the measured elements ``measured`` (state dtype)."""
-        nu = [
+    def innovations(self, x: torch.Tensor, measured) -> list[torch.Tensor]:
+        """``log(xhat_f^-1 m_f)`` per measured factor, in the state dtype."""
+        return [
             f.rminus(m, x[:, xs].unflatten(-1, f.element_shape))
             for (f, xs, _), m in zip(self.spans, measured)
         ]
+
+    def view(self, x: torch.Tensor, yu: torch.Tensor, measured) -> StepView:
+        """The step's view at the prediction ``x`` (flat, state dtype) of ``(y, u)`` ``yu``
+        (network dtype) and the measured elements ``measured`` (state dtype)."""
+        nu = self.innovations(x, measured)
         return StepView(x, yu, [n.to(yu.dtype) for n in nu], self)
 
 
@@ -142,10 +138,7 @@ class RobustMeasurement(Measurement):
         return {**super().settings(), "width": self.robust.width, "span": self.robust.span}
 
     def view(self, x, yu, measured) -> StepView:
-        nu = [
-            f.rminus(m, x[:, xs].unflatten(-1, f.element_shape))
-            for (f, xs, _), m in zip(self.spans, measured)
-        ]
+        nu = self.innovations(x, measured)
         norms = torch.stack([safe_norm(n) for n in nu], dim=-1)
         w = self.robust(norms.to(yu.dtype)).to(norms.dtype)
         nu = [n * w[:, i : i + 1] for i, n in enumerate(nu)]

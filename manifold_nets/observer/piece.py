@@ -23,10 +23,11 @@ from typing import Any, ClassVar
 import torch
 from torch import nn
 
-__all__ = ["PIECES", "KINDS", "Piece", "piece_class", "check_number", "check_int"]
+__all__ = [
+    "PIECES", "Piece", "piece_class", "check_number", "check_int", "check_spans",
+    "check_factor",
+]
 
-#: The kinds of pieces, in the order the step uses them.
-KINDS = ("measurement", "prior", "feature", "head", "scale")
 #: Every registered piece class by ``(kind, name)``.
 PIECES: dict[tuple[str, str], type[Piece]] = {}
 
@@ -92,6 +93,21 @@ def check_int(owner: str, value: object, low: int, what: str = "") -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < low:
         raise ValueError(f"{owner} must be an integer >= {low}{what}, got {value!r}.")
     return value
+
+
+def check_spans(label: str, table, within: str) -> dict[str, tuple[int, int]]:
+    """``{name: (start, stop)}`` from a mapping of spans, or a ``ValueError`` naming
+    ``label[name]`` and what the span is of (``within``: ``"y"``, ``"(y, u)"``)."""
+    out = {}
+    for name, span in dict(table or {}).items():
+        try:
+            a, b = (int(i) for i in span)
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"{label}[{name!r}] must be (start, stop) in {within}, got {span!r}."
+            ) from None
+        out[str(name)] = (a, b)
+    return out
 
 
 def check_factor(owner: str, group, name: str) -> None:

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 from groups import Euclidean
 
-from .piece import Piece, check_factor, check_int, check_number
+from .piece import Piece, check_factor, check_int, check_number, check_spans
 from .robust import RobustWeights
 
 __all__ = ["Prior", "NoPrior", "SystemPrior", "RobustSystemPrior", "KinematicPrior"]
@@ -130,16 +130,7 @@ class KinematicPrior(Prior):
 
     def __init__(self, velocities: dict, dt: float):
         super().__init__()
-        self.velocities = {}
-        for fname, span in dict(velocities or {}).items():
-            try:
-                a, b = (int(i) for i in span)
-            except (TypeError, ValueError):
-                raise ValueError(
-                    f"kinematic prior: velocities[{fname!r}] must be (start, stop) in (y, u), got "
-                    f"{span!r}."
-                ) from None
-            self.velocities[str(fname)] = (a, b)
+        self.velocities = check_spans("kinematic prior: velocities", velocities, "(y, u)")
         if not self.velocities:
             raise ValueError("kinematic prior: name at least one factor's velocity span.")
         self.dt = check_number(

@@ -51,9 +51,8 @@ def widen_state(observer, state: dict, found: dict) -> dict:
     state = pieces["measurement"].widen(state, "measurement.", fm)
     state = pieces["prior"].widen(state, "prior.", found.get("prior"))
     state = pieces["head"].widen(state, "head.", found.get("head"))
-    for i, scale in enumerate(observer.scales):
-        if scale.name != "output":
-            state = scale.widen(state, f"scales.{i}.", old_scales.get(scale.name))
+    for i, scale in enumerate(observer.scales):  # an output scale adds no weight: _rescale
+        state = scale.widen(state, f"scales.{i}.", old_scales.get(scale.name))
     return _rescale(state, old_scales.get("output"), own)
 
 
