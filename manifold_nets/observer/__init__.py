@@ -10,15 +10,17 @@ features                :class:`Embedding`, :class:`Readings`, :class:`Innovatio
                         :class:`Rotated`, :class:`FramedInnovation`
 heads                   :class:`PlainHead`, :class:`GainHead`, :class:`CentredHead`
 step scales             :class:`OutputScale`, :class:`StepDecay`
+a covariance            :class:`CovarianceReadout`, :class:`CalibratedObserver`
 your own piece          subclass :class:`Prior`, :class:`Feature`, :class:`Head` or
                         :class:`StepScale` with a ``name``: a config may then name it
 ======================  ====================================================================
 """
 
+from .covariance import CalibratedObserver, CovarianceReadout
 from .features import Embedding, Feature, FramedInnovation, Innovation, Readings, Rotated
 from .heads import CentredHead, GainHead, Head, PlainHead
 from .measurement import Measurement, RobustMeasurement, StepView
-from .observer import ObserverState, ResidualObserver
+from .observer import ObserverState, ResidualObserver, Rollout
 from .piece import PIECES, Piece
 from .priors import KinematicPrior, NoPrior, Prior, RobustSystemPrior, SystemPrior
 from .robust import RobustWeights
@@ -26,10 +28,11 @@ from .scales import OutputScale, StepDecay, StepScale
 from .update import UPDATE_RULES, GroupUpdate
 
 __all__ = [
-    "ResidualObserver", "ObserverState", "GroupUpdate", "UPDATE_RULES",
+    "ResidualObserver", "ObserverState", "Rollout", "GroupUpdate", "UPDATE_RULES",
     "Measurement", "RobustMeasurement", "StepView", "Piece", "PIECES",
     "Prior", "NoPrior", "SystemPrior", "RobustSystemPrior", "KinematicPrior",
     "Feature", "Embedding", "Readings", "Innovation", "Rotated", "FramedInnovation",
     "Head", "PlainHead", "GainHead", "CentredHead",
     "StepScale", "OutputScale", "StepDecay", "RobustWeights",
+    "CovarianceReadout", "CalibratedObserver",
 ]

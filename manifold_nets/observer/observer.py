@@ -42,7 +42,7 @@ from .priors import NoPrior, Prior
 from .scales import StepScale
 from .update import GroupUpdate
 
-__all__ = ["ObserverState", "ResidualObserver"]
+__all__ = ["ObserverState", "ResidualObserver", "Rollout"]
 
 
 class ObserverState(NamedTuple):
@@ -52,6 +52,15 @@ class ObserverState(NamedTuple):
     estimate: torch.Tensor
     hidden: Hidden
     steps: int = 0
+
+
+class Rollout(NamedTuple):
+    """A rollout: the estimates ``(N, T+1, *element_shape)``, the final state, and (when kept)
+    the core's state after every step, each hidden tensor ``(N, T+1, ...)`` from the start's."""
+
+    estimates: torch.Tensor
+    final: ObserverState
+    hidden: Hidden | None = None
 
 
 class ResidualObserver(nn.Module):
@@ -243,6 +252,13 @@ class ResidualObserver(nn.Module):
                 return_state: bool = False):
         """Rolls the observer over whole sequences (module docstring for the shapes); ``state``
         where to start (default the identity), ``return_state`` also returns the final state."""
+        run = self.rollout(measurements, inputs, state)
+        return (run.estimates, run.final) if return_state else run.estimates
+
+    def rollout(self, measurements, inputs=None, state: ObserverState | None = None,
+                keep_hidden: bool = False) -> Rollout:
+        """:meth:`forward`'s rollout as a :class:`Rollout`; ``keep_hidden`` also keeps the
+        core's state after every step (what a covariance readout reads)."""
         yu, ys = check_sequences(self, measurements, inputs)  # (T, N, l + m)
         n, steps = yu.shape[1], yu.shape[0]
         state = self.init_state(n, device=yu.device) if state is None else check_start(self, state, n)
@@ -252,18 +268,19 @@ class ResidualObserver(nn.Module):
         step = self.step_unchecked
         if self._compiled_step is not None and torch.is_grad_enabled():
             step = self._compiled_step
-        xs = [x]
+        xs, hs = [x], [hidden]
         # unbind: one backward node for all the steps' slices (indexing would add one per step)
         for yu_k, ys_k, m_k, t_k in zip(
             yu.unbind(0), ys.unbind(0), measured, self.schedule(state.steps, steps)
         ):
             x, hidden = step(x, hidden, yu_k, ys_k, m_k, t_k)
             xs.append(x)
+            if keep_hidden:
+                hs.append(hidden)
         est = torch.stack(xs, dim=1).unflatten(-1, self.group.element_shape)
-        if return_state:
-            final = ObserverState(x.view(n, *self.group.element_shape), hidden, state.steps + steps)
-            return est, final
-        return est
+        final = ObserverState(x.view(n, *self.group.element_shape), hidden, state.steps + steps)
+        kept = tuple(torch.stack(h, dim=1) for h in zip(*hs)) if keep_hidden else None
+        return Rollout(est, final, kept)
 
     def compile_step(self, **options) -> ResidualObserver:
         """Compiles the step with ``torch.compile`` for rollouts that record gradients (training);

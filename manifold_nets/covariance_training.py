@@ -1,0 +1,210 @@
+"""Training a covariance readout on a frozen observer: the Gaussian negative log-likelihood of
+its errors.
+
+The observer is rolled out once over the training sequences (no gradient), keeping what the
+readout reads after every step (:func:`~manifold_nets.observer.covariance.readout_inputs`) and
+the error ``xi_k = Log(xhat_k^-1 x_k)``. The readout, its inputs standardised by their statistics
+over the training data, then runs over them from its initial memory and is fitted by minimising the mean of ``-log N(xi_k; 0, P_k)``
+(:func:`~manifold_nets.observer.covariance.gaussian_nll`) over the steps ``k >= skip`` whose true
+state is known, in shuffled mini-batches of sequences, with the best validation epoch kept.
+Since the observer is frozen its estimates do not change at all (a joint fine-tuning would move
+them; this stage cannot).
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+from typing import NamedTuple
+
+import torch
+
+from .calibration import tangent_errors
+from .data import TrajectoryDataset
+from .observer import CovarianceReadout, ResidualObserver
+from .observer.covariance import gaussian_nll, readout_inputs
+from .progress import progress
+
+__all__ = ["Sequences", "readout_sequences", "fit_covariance", "mean_nll"]
+
+
+class Sequences(NamedTuple):
+    """What a readout is fitted to, for steps ``1 .. T``: its inputs ``features`` ``(N, T, W)``
+    (float32), the errors ``(N, T, n)`` (float64) and ``known``
+    ``(N, T)``, the steps that count."""
+
+    features: torch.Tensor
+    errors: torch.Tensor
+    known: torch.Tensor
+
+    def __len__(self) -> int:
+        return len(self.features)
+
+    def select(self, idx: torch.Tensor) -> Sequences:
+        return Sequences(self.features[idx], self.errors[idx], self.known[idx])
+
+    @staticmethod
+    def cat(parts: list[Sequences]) -> Sequences:
+        return Sequences(*(torch.cat(t) for t in zip(*parts)))
+
+
+@torch.no_grad()
+def readout_sequences(
+    observer: ResidualObserver, data: TrajectoryDataset, source: str = "residual", skip: int = 1,
+    batch_size: int = 250,
+) -> Sequences:
+    """``data``'s sequences as a readout of ``source`` sees them; the steps ``k >= skip`` (and
+    ``data.mask``, when it has one) count."""
+    if isinstance(skip, bool) or not isinstance(skip, int) or not 1 <= skip <= data.length:
+        raise ValueError(f"skip must be an integer in [1, {data.length}], got {skip!r}.")
+    was = observer.training
+    observer.eval()
+    parts = []
+    try:
+        for s in range(0, len(data), batch_size):
+            part = data[torch.arange(s, min(len(data), s + batch_size))]
+            inputs = part.inputs if part.inputs.shape[-1] else None
+            run = observer.rollout(part.measurements, inputs, keep_hidden=True)
+            xi = tangent_errors(observer.group, run.estimates, part.states)[:, 1:]
+            known = torch.zeros(xi.shape[:2], dtype=torch.bool)
+            known[:, skip - 1 :] = True
+            if part.mask is not None:
+                known &= part.mask[:, 1:].bool()
+            z = readout_inputs(
+                observer, source, run.estimates[:, 1:].flatten(2), part.measurements,
+                tuple(h[:, 1:] for h in run.hidden),
+            )
+            parts.append(Sequences(z, xi.double(), known))
+    finally:
+        observer.train(was)
+    return Sequences.cat(parts)
+
+
+def _nll(readout: CovarianceReadout, seqs: Sequences) -> tuple[torch.Tensor, int]:
+    chol, log_diag = readout.log_scale(seqs.features)
+    nll = gaussian_nll(seqs.errors, chol, log_diag)
+    return nll[seqs.known].sum(), int(seqs.known.sum())
+
+
+def mean_nll(readout: CovarianceReadout, seqs: Sequences, batch_size: int = 200) -> float:
+    """The mean negative log-likelihood (less ``n/2 log 2 pi``) of ``seqs``' known steps."""
+    total, count = 0.0, 0
+    with torch.no_grad():
+        for s in range(0, len(seqs), batch_size):
+            t, c = _nll(readout, seqs.select(torch.arange(s, min(len(seqs), s + batch_size))))
+            total, count = total + float(t), count + c
+    return total / max(count, 1)
+
+
+def fit_covariance(
+    readout: CovarianceReadout,
+    train: Sequences,
+    val: Sequences,
+    epochs: int = 20,
+    lr: float = 3e-3,
+    batch_size: int = 16,
+    seed: int = 0,
+    show_progress: bool = True,
+) -> list[dict]:
+    """Fits ``readout`` to ``train`` (its inputs standardised by ``train``'s known steps, every
+    ``P`` starting at the errors' own diagonal covariance), keeps the epoch of lowest validation NLL; returns the history (``epoch``,
+    ``train_nll``, ``val_nll`` per epoch; epoch 0 is the start)."""
+    for name, v in (("epochs", epochs), ("batch_size", batch_size)):
+        if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+            raise ValueError(f"{name} must be a positive integer, got {v!r}.")
+    if not (isinstance(lr, (int, float)) and math.isfinite(lr) and lr > 0):
+        raise ValueError(f"lr must be a positive number, got {lr!r}.")
+    if not train.known.any() or not val.known.any():
+        raise ValueError("the training and validation sequences must have known steps.")
+    readout.set_input_stats(train.features[train.known])
+    readout.set_scale(train.errors[train.known].pow(2).mean(0).sqrt().clamp_min(1e-12))
+    opt = torch.optim.Adam(readout.parameters(), lr=lr)
+    sched = torch.optim.lr_scheduler.CosineAnnealingLR(opt, epochs)
+    gen = torch.Generator().manual_seed(seed)
+    best = mean_nll(readout, val)
+    history = [{"epoch": 0, "train_nll": mean_nll(readout, train), "val_nll": best}]
+    best_state = copy.deepcopy(readout.state_dict())
+    for epoch in progress(range(1, epochs + 1), desc="covariance epochs", enabled=show_progress):
+        order = torch.randperm(len(train), generator=gen)
+        total, count = 0.0, 0
+        for s in range(0, len(order), batch_size):
+            t, c = _nll(readout, train.select(order[s : s + batch_size]))
+            if not c:
+                continue
+            opt.zero_grad(set_to_none=True)
+            (t / c).backward()
+            torch.nn.utils.clip_grad_norm_(readout.parameters(), 1.0)
+            opt.step()
+            total, count = total + float(t.detach()), count + c
+        sched.step()
+        v = mean_nll(readout, val)
+        history.append({"epoch": epoch, "train_nll": total / count, "val_nll": v})
+        if v < best:
+            best, best_state = v, copy.deepcopy(readout.state_dict())
+    readout.load_state_dict(best_state)
+    return history
+
+
+#: The format of a readout file (:func:`save_readout`).
+READOUT_FORMAT = "manifold_nets.covariance/1"
+
+
+def save_readout(path, readout: CovarianceReadout, observer: str = "") -> None:
+    """Writes ``readout`` (its signature and weights; ``observer`` a note of which observer it
+    belongs to) to ``path``, atomically."""
+    from .atomic import atomic_open
+
+    payload = {
+        "format": READOUT_FORMAT, "signature": readout.signature(), "observer": str(observer),
+        "model": {k: v.detach().cpu() for k, v in readout.state_dict().items()},
+    }
+    with atomic_open(path, "wb") as f:
+        torch.save(payload, f)
+
+
+def load_readout(path, observer: ResidualObserver):
+    """The :class:`~manifold_nets.observer.CalibratedObserver` of ``observer`` and the readout at
+    ``path`` (from :func:`save_readout`; read with ``torch.load(weights_only=True)``, its
+    signature checked against ``observer`` before anything is built, its weights by
+    :func:`manifold_nets.checkpoint.load_state`). A :class:`~manifold_nets.checkpoint.
+    CheckpointError` names the file and the problem."""
+    from pathlib import Path
+
+    from .checkpoint import CheckpointError, load_state
+    from .observer import CalibratedObserver
+    from .observer.covariance import SOURCES, STRUCTURES, input_width
+
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"no covariance readout at {path}; fit one first or fix the path.")
+    try:
+        ckpt = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as err:  # unpickling errors come in many types
+        raise CheckpointError(
+            f"{path} is not a loadable readout ({type(err).__name__}: {str(err)[:300]})."
+        ) from None
+    if not isinstance(ckpt, dict) or ckpt.get("format") != READOUT_FORMAT:
+        raise CheckpointError(f"{path} is not a covariance readout (format {READOUT_FORMAT!r}).")
+    sig, state = ckpt.get("signature"), ckpt.get("model")
+    if not isinstance(sig, dict) or not isinstance(state, dict):
+        raise CheckpointError(f"{path}: the signature or the weights are missing.")
+    source = sig.get("source")
+    want = {
+        "type": "cholesky", "group": repr(observer.group),
+        "source": source if source in SOURCES else "residual",
+        "width": input_width(observer, source) if source in SOURCES else None,
+        "structure": sig.get("structure") if sig.get("structure") in STRUCTURES else "factor",
+        "memory": sig.get("memory") if isinstance(sig.get("memory"), int)
+        and not isinstance(sig.get("memory"), bool) and 0 <= sig.get("memory") <= 4096 else -1,
+    }
+    if sig != want:
+        diff = sorted(k for k in set(sig) | set(want) if sig.get(k) != want.get(k))
+        raise CheckpointError(
+            f"{path}: the readout does not fit this observer ({', '.join(diff)} differ: "
+            f"{ {k: sig.get(k) for k in diff} } against { {k: want.get(k) for k in diff} })."
+        )
+    readout = CovarianceReadout(
+        observer.group, want["width"], want["structure"], want["memory"], want["source"]
+    )
+    load_state(readout, {"model": state}, path)
+    return CalibratedObserver(observer, readout)

@@ -1,0 +1,106 @@
+"""The calibration figures (NEES, ANEES and its band, ellipsoid shares) against scipy and against
+errors drawn from the covariance they are scored under."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+from scipy.stats import chi2
+
+from groups import SO3, Euclidean, Product
+from manifold_nets.calibration import (
+    anees_band,
+    calibration,
+    gaussian_share,
+    nees,
+    tangent_errors,
+)
+
+GROUP = Product(SO3(), Euclidean(3), names=("R", "p"))
+
+
+def _spd(batch, n, gen):
+    a = torch.randn(*batch, n, n, generator=gen, dtype=torch.float64)
+    return a @ a.transpose(-1, -2) + 0.5 * torch.eye(n, dtype=torch.float64)
+
+
+def _block_diagonal(gen, batch):
+    P = torch.zeros(*batch, 6, 6, dtype=torch.float64)
+    P[..., :3, :3] = _spd(batch, 3, gen)
+    P[..., 3:, 3:] = 0.01 * _spd(batch, 3, gen)
+    return P
+
+
+def test_nees_is_the_quadratic_form_of_the_inverse():
+    gen = torch.Generator().manual_seed(0)
+    P = _spd((5, 4), 6, gen)
+    e = torch.randn(5, 4, 6, generator=gen, dtype=torch.float64)
+    want = (e.unsqueeze(-2) @ torch.linalg.inv(P) @ e.unsqueeze(-1)).squeeze(-1).squeeze(-1)
+    torch.testing.assert_close(nees(e, P), want)
+
+
+def test_a_covariance_that_is_not_positive_definite_is_refused_by_index():
+    P = torch.eye(3, dtype=torch.float64).repeat(2, 3, 1, 1)
+    P[1, 2] = -P[1, 2]
+    with pytest.raises(ValueError, match=r"index \(1, 2\).*not positive definite"):
+        nees(torch.zeros(2, 3, 3), P)
+
+
+def test_the_band_and_the_shares_are_scipy_s():
+    lo, hi = anees_band(100, 3)
+    assert lo == pytest.approx(chi2.ppf(0.025, 300) / 300)
+    assert hi == pytest.approx(chi2.ppf(0.975, 300) / 300)
+    assert gaussian_share(3, 3) == pytest.approx(0.9707, abs=1e-4)
+    assert gaussian_share(1, 1) == pytest.approx(0.6827, abs=1e-4)
+
+
+def test_tangent_errors_reach_the_truth_from_the_estimate():
+    gen = torch.Generator().manual_seed(1)
+    xhat = GROUP.random((4, 7), generator=gen, dtype=torch.float64)
+    x = GROUP.random((4, 7), generator=gen, dtype=torch.float64)
+    xi = tangent_errors(GROUP, xhat, x)
+    torch.testing.assert_close(GROUP.rplus(xhat, xi), x)
+
+
+@pytest.mark.parametrize("scale", [1.0, 4.0])
+def test_errors_drawn_from_the_covariance_are_calibrated_and_scaled_ones_are_not(scale):
+    gen = torch.Generator().manual_seed(2)
+    n_seq, steps = 400, 50
+    P = _block_diagonal(gen, (n_seq, steps))
+    L = torch.linalg.cholesky(P)
+    e = (L @ torch.randn(n_seq, steps, 6, 1, generator=gen, dtype=torch.float64)).squeeze(-1)
+    out = calibration(GROUP, e, P * scale)
+    for name, c in out.items():
+        assert c.dim == 3
+        assert c.anees == pytest.approx(1 / scale, rel=0.03), name
+        assert c.band == pytest.approx(anees_band(n_seq, 3))
+        if scale == 1.0:
+            assert c.in_band >= 0.8, name  # 95 % in expectation over 50 steps
+            for s in (1, 2, 3):
+                assert c.shares[s] == pytest.approx(gaussian_share(s, 3), abs=0.01), (name, s)
+        else:
+            assert c.in_band == 0.0, name
+            assert c.shares[3] > 0.999, name
+
+
+def test_the_mask_leaves_steps_out_and_the_shares_count_only_known_ones():
+    gen = torch.Generator().manual_seed(3)
+    P = torch.eye(6, dtype=torch.float64).repeat(10, 4, 1, 1)
+    e = torch.randn(10, 4, 6, generator=gen, dtype=torch.float64)
+    e[:, 0] = 100.0  # step 0 unknown everywhere: left out
+    mask = torch.ones(10, 4, dtype=torch.bool)
+    mask[:, 0] = False
+    c = calibration(GROUP, e, P, mask)["R"]
+    assert len(c.anees_steps) == 3
+    want = (e[:, 1:, :3] ** 2).sum(-1).mean(0) / 3
+    torch.testing.assert_close(torch.as_tensor(c.anees_steps), want)
+    assert math.isfinite(c.anees) and c.anees < 10
+
+
+def test_shapes_are_checked():
+    with pytest.raises(ValueError, match=r"\(N, T, n\)"):
+        calibration(GROUP, torch.zeros(2, 6), torch.zeros(2, 6, 6))
+    with pytest.raises(ValueError, match="6 components|components"):
+        calibration(GROUP, torch.zeros(2, 3, 5), torch.zeros(2, 3, 5, 5))

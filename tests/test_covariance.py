@@ -1,0 +1,172 @@
+"""The learned covariance: its Cholesky parameterisation, its likelihood, the calibrated
+observer's rollout, online and exported steps (one computation), and its training."""
+
+from __future__ import annotations
+
+import math
+from functools import partial
+
+import pytest
+import torch
+
+from groups import SO3, Euclidean, Product
+from manifold_nets.cores import GRUCore
+from manifold_nets.covariance_training import Sequences, fit_covariance, mean_nll
+from manifold_nets.observer import (
+    CalibratedObserver,
+    CovarianceReadout,
+    Measurement,
+    ResidualObserver,
+)
+from manifold_nets.observer.covariance import gaussian_nll, input_width
+
+GROUP = Product(SO3(), Euclidean(3), names=("R", "p"))
+
+
+def _observer(seed=0):
+    torch.manual_seed(seed)
+    measurement = Measurement(12, factors={"R": [0, 9], "p": [9, 12]})
+    obs = ResidualObserver(GROUP, measurement, core=partial(GRUCore, hidden_size=8, num_layers=2))
+    with torch.no_grad():  # a moving observer: the zero-started output layer set at random
+        obs.core.head.weight.normal_(0, 0.1)
+    return obs
+
+
+@pytest.mark.parametrize("structure", ["diagonal", "factor", "joint"])
+def test_the_factor_has_the_structure_s_pattern_and_its_log_determinant(structure):
+    r = CovarianceReadout(GROUP, 16, structure, memory=4)
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_()
+    L, log_diag = r.log_scale(torch.randn(3, 5, 16))
+    assert L.shape == (3, 5, 6, 6) and L.dtype == torch.float64
+    assert torch.equal(L.triu(1), torch.zeros_like(L))
+    off_block = L[..., 3:, :3]
+    if structure == "joint":
+        assert off_block.abs().sum() > 0
+    else:
+        assert torch.equal(off_block, torch.zeros_like(off_block))
+    if structure == "diagonal":
+        assert torch.equal(L, torch.diag_embed(torch.diagonal(L, dim1=-2, dim2=-1)))
+    torch.testing.assert_close(torch.logdet(L @ L.mT), 2 * log_diag.sum(-1), rtol=1e-5, atol=1e-9)
+
+
+def test_the_likelihood_is_the_gaussian_s():
+    r = CovarianceReadout(GROUP, 16, "joint", memory=0)
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.3)
+    L, log_diag = r.log_scale(torch.randn(4, 2, 16))
+    e = torch.randn(4, 2, 6, dtype=torch.float64)
+    mvn = torch.distributions.MultivariateNormal(torch.zeros(6, dtype=torch.float64), scale_tril=L)
+    want = -mvn.log_prob(e) - 3 * math.log(2 * math.pi)
+    torch.testing.assert_close(gaussian_nll(e, L, log_diag), want)
+
+
+def test_set_scale_starts_every_covariance_at_the_given_diagonal():
+    r = CovarianceReadout(GROUP, 16, "factor", memory=4)
+    std = torch.arange(1, 7, dtype=torch.float64) / 10
+    r.set_scale(std)
+    L, _ = r.log_scale(torch.randn(2, 3, 16))
+    torch.testing.assert_close(r.covariance(L), torch.diag(std**2).expand(2, 3, 6, 6).float().double())
+    torch.testing.assert_close(r.covariance(r.initial_cholesky()), torch.diag(std**2).float().double())
+
+
+def _measurements(n, t, seed=5):
+    """Noisy embedded elements of the group: what a sensor of R and p gives."""
+    gen = torch.Generator().manual_seed(seed)
+    x = GROUP.random((n, t), generator=gen, dtype=torch.float64)
+    return GROUP.embed(x)
+
+
+@pytest.mark.parametrize("source", ["residual", "hidden"])
+def test_rollout_online_and_exported_steps_give_the_same_estimates_and_covariances(source):
+    obs = _observer()
+    r = CovarianceReadout(GROUP, input_width(obs, source), "factor", memory=4, source=source)
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.3)
+    cal = CalibratedObserver(obs, r)
+    y = _measurements(3, 6)
+    with torch.no_grad():
+        est, cov = cal(y)
+        assert torch.equal(est, obs(y))  # the readout does not move the estimate
+        assert cov.shape == (3, 7, 6, 6)
+        torch.testing.assert_close(cov[:, 0], r.covariance(r.initial_cholesky((3,))))
+        state = cal.init_state(3)
+        step = cal.online_step_module()
+        flat = step.initial_state(3)
+        for k in range(6):
+            state, P = cal.step(state, y[:, k])
+            *flat, P_exp = step(*flat, y[:, k])
+            torch.testing.assert_close(state.observer.estimate, est[:, k + 1], rtol=0, atol=1e-12)
+            torch.testing.assert_close(P, cov[:, k + 1], rtol=1e-6, atol=1e-12)
+            torch.testing.assert_close(P_exp, cov[:, k + 1], rtol=1e-6, atol=1e-12)
+            torch.testing.assert_close(flat[0], est[:, k + 1].reshape(3, -1), rtol=0, atol=1e-12)
+
+
+def test_a_readout_of_another_width_or_source_is_refused():
+    obs = _observer()
+    with pytest.raises(ValueError, match="reads 99 numbers"):
+        CalibratedObserver(obs, CovarianceReadout(GROUP, 99))
+    plain = ResidualObserver(GROUP, 12, core=partial(GRUCore, hidden_size=8, num_layers=1))
+    with pytest.raises(ValueError, match="names no measured factor; use source='hidden'"):
+        CalibratedObserver(plain, CovarianceReadout(GROUP, 6))
+    CalibratedObserver(plain, CovarianceReadout(GROUP, 8, source="hidden"))
+
+
+@pytest.mark.parametrize(
+    "bad", [{"structure": "full"}, {"memory": -1}, {"memory": 1.5}, {"source": "innovation"}]
+)
+def test_bad_settings_are_refused(bad):
+    with pytest.raises(ValueError, match="covariance"):
+        CovarianceReadout(GROUP, 16, **bad)
+
+
+def test_fitting_learns_a_noise_level_the_features_carry():
+    """Sequences at two noise levels whose features say which: the fitted readout's standard
+    deviations land on each level's, where the starting one (one diagonal for all) cannot."""
+    gen = torch.Generator().manual_seed(4)
+    n, t, levels = 64, 40, torch.tensor([0.02, 0.5])
+    which = torch.arange(n) % 2
+    sd = levels[which].double()
+    feats = torch.zeros(n, t, 2)
+    feats[torch.arange(n), :, which] = 1.0
+    errors = torch.randn(n, t, 6, generator=gen, dtype=torch.float64) * sd[:, None, None]
+    known = torch.ones(n, t, dtype=torch.bool)
+    data = Sequences(feats, errors, known)
+    r = CovarianceReadout(GROUP, 2, "diagonal", memory=0)
+    history = fit_covariance(r, data, data, epochs=60, lr=3e-2, batch_size=8, show_progress=False)
+    assert history[-1]["val_nll"] < history[0]["val_nll"] - 1.0
+    assert mean_nll(r, data) == pytest.approx(min(h["val_nll"] for h in history))
+    L, _ = r.log_scale(feats[:2])
+    got = torch.diagonal(L, dim1=-2, dim2=-1)[:, -1].mean(-1)
+    torch.testing.assert_close(got, levels.double(), rtol=0.15, atol=0)
+
+
+def test_a_saved_readout_loads_back_and_a_foreign_one_is_refused(tmp_path):
+    from manifold_nets.checkpoint import CheckpointError
+    from manifold_nets.covariance_training import load_readout, save_readout
+
+    obs = _observer()
+    r = CovarianceReadout(GROUP, input_width(obs, "residual"), "joint", memory=3)
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_()
+    save_readout(tmp_path / "c.pt", r, observer="test")
+    cal = load_readout(tmp_path / "c.pt", obs)
+    y = _measurements(2, 4)
+    with torch.no_grad():
+        torch.testing.assert_close(cal(y)[1], CalibratedObserver(obs, r)(y)[1], rtol=0, atol=0)
+    other = ResidualObserver(Product(SO3(), names=("R",)), Measurement(9, factors={"R": [0, 9]}))
+    with pytest.raises(CheckpointError, match="does not fit this observer.*group"):
+        load_readout(tmp_path / "c.pt", other)
+    (tmp_path / "bad.pt").write_bytes(b"not a file torch wrote")
+    with pytest.raises(CheckpointError, match="bad.pt is not a loadable readout"):
+        load_readout(tmp_path / "bad.pt", obs)
+    with pytest.raises(CheckpointError, match="no covariance readout"):
+        load_readout(tmp_path / "none.pt", obs)
+    torch.save({"format": "manifold_nets.covariance/1", "signature": r.signature(),
+                "model": {**r.state_dict(), "out.weight": torch.zeros(2, 2)}}, tmp_path / "w.pt")
+    with pytest.raises(CheckpointError, match="w.pt.*out.weight"):
+        load_readout(tmp_path / "w.pt", obs)
