@@ -1,7 +1,11 @@
 """``mn-apply``: a trained observer over a dataset file. Its destination is checked before any
-work, and non-finite estimates are an error that writes nothing."""
+work (:func:`manifold_nets.destination.check_destination`), non-finite estimates are an error
+that writes nothing, and it runs on one torch thread unless asked."""
 
 from __future__ import annotations
+
+import tempfile
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -10,6 +14,7 @@ import torch
 from manifold_nets.checkpoint import load_checkpoint, save_checkpoint
 from manifold_nets.cli import apply
 from manifold_nets.data import save_dataset
+from manifold_nets.destination import check_destination
 from manifold_nets.plugins import zoo_path
 
 
@@ -29,13 +34,42 @@ def test_the_estimates_land_in_a_npz_file(tmp_path, data_file):
     assert est.shape == (2, 21, 18) and np.isfinite(est).all()
 
 
-@pytest.mark.parametrize("bad", ["e.csv", "folder", "file.txt/e.npz"])
-def test_a_bad_destination_is_refused_before_any_work(tmp_path, data_file, bad, capsys):
+def _unwritable() -> Path:
+    """A folder no one can create a file in, root included (a read-only /sys)."""
+    try:
+        with tempfile.TemporaryFile(dir="/sys"):
+            pass
+    except OSError:
+        return Path("/sys")
+    pytest.skip("/sys takes files here: no unwritable folder to test with")
+
+
+@pytest.mark.parametrize("bad, needle", [
+    ("e.csv", "the name must end in .npz"), ("folder", "is a folder"),
+    ("file.txt/e.npz", "file.txt is a file, so nothing can be created under it"),
+    ("UNWRITABLE", "cannot write in /sys (PermissionError"),
+])
+def test_a_bad_destination_is_refused_before_any_work(
+    tmp_path, data_file, bad, needle, capsys, monkeypatch
+):
     (tmp_path / "folder").mkdir()
     (tmp_path / "file.txt").write_text("x")
+    out = _unwritable() / "e.npz" if bad == "UNWRITABLE" else tmp_path / bad
+    monkeypatch.setattr(apply, "load_observer", lambda *_: pytest.fail("work started"))
     with pytest.raises(SystemExit):
-        apply.run(["zoo:rigid_body/paper", str(data_file), "--out", str(tmp_path / bad)])
-    assert "--out" in capsys.readouterr().err
+        apply.run(["zoo:rigid_body/paper", str(data_file), "--out", str(out)])
+    err = capsys.readouterr().err
+    assert f"--out {out}: " in err and needle in err, err
+
+
+def test_the_destination_check_creates_nothing(tmp_path):
+    out = check_destination(tmp_path / "a" / "b" / "e.npz", suffixes=(".npz",))
+    assert out == tmp_path / "a" / "b" / "e.npz" and list(tmp_path.iterdir()) == []
+    assert check_destination(tmp_path / "run", folder=True) == tmp_path / "run"
+    (tmp_path / "f").write_text("x")
+    with pytest.raises(ValueError, match=r"^--out .*f: is a file, not a folder"):
+        check_destination(tmp_path / "f", folder=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
 
 
 def test_nan_weights_are_an_error_and_nothing_is_written(tmp_path, data_file):
@@ -47,6 +81,23 @@ def test_nan_weights_are_an_error_and_nothing_is_written(tmp_path, data_file):
     with pytest.raises(ValueError, match="non-finite estimates.*nothing was written"):
         apply.run([str(tmp_path / "nan.pt"), str(data_file), "--out", str(out), "--no-progress"])
     assert not out.exists()
+    # the console script says so in one line, exit status 1, no traceback
+    with pytest.raises(SystemExit) as info:
+        apply.main([str(tmp_path / "nan.pt"), str(data_file), "--out", str(out), "--no-progress"])
+    assert str(info.value).startswith(f"error: {tmp_path / 'nan.pt'} gave non-finite estimates")
+    assert not out.exists()
+
+
+def test_mn_apply_runs_on_one_thread_unless_asked(tmp_path, data_file, monkeypatch):
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        apply.run(["zoo:rigid_body/paper", str(data_file), "--out", str(tmp_path / "e.npz"),
+                   "--no-progress"])
+        assert torch.get_num_threads() == 1
+    finally:
+        torch.set_num_threads(before)
 
 
 @pytest.mark.parametrize("bad", ["int64", "complex", "sparse", "meta"])

@@ -40,6 +40,7 @@ from manifold_nets.datasets import inference_data
 from manifold_nets.evaluation import rollout
 from manifold_nets.loading import load_observer
 from manifold_nets.reporting import plot_comparison, write_table
+from manifold_nets.threads import use_threads
 
 # the shipped systems, registered so that their run folders load (load_observer looks the
 # config's system up among the imported System subclasses)
@@ -150,8 +151,10 @@ def main(estimators: EstimatorFactory, argv: Sequence[str] | None = None) -> lis
     p.add_argument("--length", type=int, default=None)
     p.add_argument("--tag", default="", help="write compare_<tag>.* instead of compare.*")
     p.add_argument("--no-plots", action="store_true")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads (default: one, or OMP_NUM_THREADS)")
     a = p.parse_args(argv)
-    torch.set_num_threads(1)
+    use_threads(a.threads)
     rows = compare_run(a.run_dir, estimators, a.sigmas, a.num_sequences, a.length,
                        plots=not a.no_plots, tag=a.tag)
     stem = f"compare_{a.tag}" if a.tag else "compare"

@@ -13,19 +13,27 @@ observers' rows: ``--learned LABEL=RUN`` (a run folder of :mod:`.train`; repeata
 on whole trials like the filters; from Python, :func:`write_results`'s ``extra``
 (``{method: {trial: (T, 4) quaternions}}``).
 
-Figures and tables derived from BROAD carry its attribution (CC-BY-4.0, Laidig et al. 2021).
+Every argument is checked before any work (split and method names, ``--learned``, ``--tuned``,
+that ``--out`` is a folder that can be written); every file is written atomically; errors end
+the command with ``error: ...``. Figures and tables derived from BROAD carry its attribution
+(CC-BY-4.0, Laidig et al. 2021).
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from .data import Trial, read_trials, split_trials
+from manifold_nets.atomic import atomic_open, write_text_atomic
+from manifold_nets.destination import check_destination
+from manifold_nets.threads import use_threads
+
+from .data import BroadFormatError, Trial, read_trials, split_trials
 from .metric import errors, rmse
 
 __all__ = ["comparison", "markdown_table", "plot_trial", "classical_estimates", "write_results",
@@ -100,20 +108,38 @@ def plot_trial(trial: Trial, estimates: dict, path: str | Path) -> None:
     ax.legend(loc="upper left", fontsize=7, ncol=4)
     fig.text(0.01, 0.01, ATTRIBUTION, fontsize=5)
     fig.tight_layout()
-    fig.savefig(path, dpi=120)
+    buf = io.BytesIO()
+    fig.savefig(buf, dpi=120, format="png")
     plt.close(fig)
+    with atomic_open(path, "wb") as f:
+        f.write(buf.getvalue())
 
 
-def _tuned(train: list[Trial], tuned_path, out: Path) -> dict:
+def _read_tuned(tuned_path, methods) -> dict | None:
+    """The gains of ``--tuned`` (checked before any work), or ``None`` to tune them."""
+    if tuned_path is None:
+        return None
+    try:
+        tuned = json.loads(Path(tuned_path).read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as err:
+        raise ValueError(f"--tuned {tuned_path}: cannot be read as JSON ({err}).") from None
+    need = ["m_ref", *[m for m in ("complementary", "ekf") if m in methods]]
+    if not isinstance(tuned, dict) or any(k not in tuned for k in need):
+        raise ValueError(f"--tuned {tuned_path}: needs the keys {need} (the tuned.json this "
+                         "command writes).")
+    return tuned
+
+
+def _tuned(train: list[Trial], tuned: dict | None, out: Path) -> dict:
     from . import filters
 
-    if tuned_path is not None:
-        return json.loads(Path(tuned_path).read_text())
+    if tuned is not None:
+        return tuned
     m_ref = filters.magnetic_reference(train)
     best_c, _ = filters.tune("complementary", train, m_ref)
     best_e, _ = filters.tune("ekf", train, m_ref)
     tuned = {"m_ref": m_ref.tolist(), "complementary": best_c, "ekf": best_e}
-    (out / "tuned.json").write_text(json.dumps(tuned, indent=2))
+    write_text_atomic(out / "tuned.json", json.dumps(tuned, indent=2))
     return tuned
 
 
@@ -158,8 +184,8 @@ def write_results(out, splits: dict, trials: dict, estimates: dict, published=No
         for t in ts:
             plot_trial(t, {m: per[t.name] for m, per in every.items()}, out / "figures" /
                        f"{t.name}.png")  # fmt: skip
-    (out / "table.md").write_text("\n".join(tables))
-    (out / "metrics.json").write_text(json.dumps(metrics, indent=1))
+    write_text_atomic(out / "table.md", "\n".join(tables))
+    write_text_atomic(out / "metrics.json", json.dumps(metrics, indent=1))
     return metrics
 
 
@@ -169,11 +195,11 @@ def _parse_learned(items: list[str]) -> dict[str, Path]:
     for item in items:
         label, sep, run = item.partition("=")
         if not sep or not label or not run:
-            raise SystemExit(f"--learned takes LABEL=RUN (e.g. learned=runs/broad), got {item!r}.")
+            raise ValueError(f"--learned takes LABEL=RUN (e.g. learned=runs/broad), got {item!r}.")
         if label in CLASSICAL or label in out:
-            raise SystemExit(f"--learned label {label!r} is taken; choose another.")
+            raise ValueError(f"--learned label {label!r} is taken; choose another.")
         if not Path(run).exists():
-            raise SystemExit(f"--learned {label}={run}: no such run folder or checkpoint.")
+            raise ValueError(f"--learned {label}={run}: no such run folder or checkpoint.")
         out[label] = Path(run)
     return out
 
@@ -186,11 +212,34 @@ def learned_estimates(run, trials: list[Trial]) -> dict:
     from .evaluate import observer_quaternions
 
     observer, system, _ = load_observer(run)
-    quats = observer_quaternions(observer, system, trials)
+    quats = observer_quaternions(observer, system, trials, source=str(run))
     return {t.name: q for t, q in zip(trials, quats)}
 
 
+def _chosen(a, splits: dict, learned: dict) -> tuple[dict, list[str]]:
+    """``({split: names}, methods)`` of ``--split`` and ``--methods``, checked (no method at
+    all only with ``--learned`` rows)."""
+    every = [n for v in splits.values() for n in v]
+    asked = [s for s in a.split.split(",") if s]
+    unknown = [s for s in asked if s != "all" and s not in splits]
+    if not asked or unknown:
+        raise BroadFormatError(f"--split {a.split!r}: unknown or no split {unknown}; choose from "
+                               f"{sorted(splits) + ['all']}.")
+    methods = [m for m in a.methods.split(",") if m]
+    if (not methods and not learned) or any(m not in CLASSICAL for m in methods):
+        raise ValueError(f"--methods {a.methods!r}: choose from {list(CLASSICAL)} (learned "
+                         "observers come with --learned LABEL=RUN).")
+    return {s: every if s == "all" else splits[s] for s in asked}, methods
+
+
 def main(argv=None) -> None:
+    try:
+        _main(argv)
+    except (ValueError, OSError) as err:
+        raise SystemExit(f"error: {err}") from None
+
+
+def _main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--data-dir", default=None, help="folder of the BROAD .mat trials")
     p.add_argument("--out", required=True)
@@ -203,33 +252,39 @@ def main(argv=None) -> None:
     p.add_argument("--learned", action="append", default=[], metavar="LABEL=RUN",
                    help="a trained observer's row: its label and run folder (broad.train); "
                         "repeatable")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads (default: one, or OMP_NUM_THREADS)")
     a = p.parse_args(argv)
+    use_threads(a.threads)
     learned = _parse_learned(a.learned)
     default_dir, splits = split_trials(a.config)
+    chosen, methods = _chosen(a, splits, learned)
+    tuned_gains = _read_tuned(a.tuned, methods)
+    out = check_destination(a.out, folder=True)
     data_dir = Path(a.data_dir or default_dir)
-    out = Path(a.out)
-    out.mkdir(parents=True, exist_ok=True)
-    every = [n for v in splits.values() for n in v]
-    chosen = {s: every if s == "all" else splits[s] for s in a.split.split(",")}
     names = list(dict.fromkeys(n for v in chosen.values() for n in v))
-    tuned = _tuned(read_trials(data_dir, splits["train"]), a.tuned, out)
     trials = {t.name: t for t in read_trials(data_dir, names)}
-    methods = [m for m in a.methods.split(",") if m]
-    est, secs = classical_estimates(list(trials.values()), tuned, methods)
-    est = {m: dict(zip(trials, qs)) for m, qs in est.items()}
+    if tuned_gains is None and "train" not in splits:
+        raise BroadFormatError(f"{a.config}: tuning the gains needs a 'train' split (or give "
+                               "--tuned FILE).")
+    train = read_trials(data_dir, splits["train"]) if tuned_gains is None else []
     published = None
     if "published" in methods:
         from .reference import published as read_published
 
         pub_dir = Path(a.published) if a.published else data_dir.parent / "published"
         published = read_published(pub_dir, names)
+    out.mkdir(parents=True, exist_ok=True)
+    tuned = _tuned(train, tuned_gains, out)
+    est, secs = classical_estimates(list(trials.values()), tuned, methods)
+    est = {m: dict(zip(trials, qs)) for m, qs in est.items()}
     for label, run in learned.items():
         t0 = time.perf_counter()
         est[label] = learned_estimates(run, list(trials.values()))
         secs[label] = time.perf_counter() - t0
         print(f"{label}: {secs[label]:.1f} s for {len(trials)} trial(s)", flush=True)
     write_results(out, chosen, trials, est, published)
-    (out / "seconds.json").write_text(json.dumps(secs, indent=1))
+    write_text_atomic(out / "seconds.json", json.dumps(secs, indent=1))
     print((out / "table.md").read_text())
 
 

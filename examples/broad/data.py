@@ -1,7 +1,6 @@
 """Read BROAD trials (``.mat`` files from outside: checked, never trusted) into datasets.
 
-A trial file (Matlab v5, read with ``scipy.io.loadmat(path, squeeze_me=True)``) holds, for ``T``
-samples at ``sampling_rate`` Hz (285.714 Hz in BROAD):
+A trial file (Matlab v5) holds, for ``T`` samples at ``sampling_rate`` Hz (285.714 Hz in BROAD):
 
 * ``imu_gyr`` ``(T, 3)`` rad/s, ``imu_acc`` ``(T, 3)`` m/s^2, ``imu_mag`` ``(T, 3)`` uT, in the
   IMU's frame;
@@ -9,10 +8,16 @@ samples at ``sampling_rate`` Hz (285.714 Hz in BROAD):
   ``v_world = R(q) v_body``, NaN rows where the optical reference is missing;
 * ``movement`` ``(T,)`` 0/1, the samples that count for the error metric.
 
-:func:`read_trial` checks every field (present, numeric, shapes, one ``T``, finite IMU readings,
-a positive finite rate, unit quaternions to 1e-3, a 0/1 movement) and raises
-:class:`BroadFormatError` naming the file, the field and the fix. Only numeric arrays are
-accepted: object, struct, cell and function arrays are refused, nothing from a file is executed.
+:func:`read_trial` reads the file's header first (:mod:`.matfile`: names, shapes and classes,
+no data) and refuses a field that is missing, not numeric, or larger than :data:`MAX_SAMPLES`
+samples before any data is read; then it reads only these fields, each decompressed at most to
+the size its header claims, and checks every value (shapes, one ``T``, IMU readings finite and
+within :data:`MAX_READING`, a positive finite rate, unit quaternions to 1e-3, a 0/1 movement).
+Each refusal is a :class:`BroadFormatError` naming the file, the field and the fix. Only numeric
+arrays are accepted: object, struct, cell and function arrays are refused, nothing from a file
+is executed. With ``reference=False`` (a recording of one's own IMU, for :mod:`.apply`)
+``opt_quat`` and ``movement`` may be absent: the trial then has no reference (NaN rows), or
+without ``movement`` every sample with a reference counts.
 
 :func:`trials_to_dataset` makes a :class:`~manifold_nets.data.TrajectoryDataset` on
 ``SO3()``: for samples ``0..T-1`` the states are ``x_k = R(quat_k)`` ``(N, L+1, 3, 3)``,
@@ -33,9 +38,13 @@ import torch
 
 from manifold_nets.data import TrajectoryDataset
 
+from .matfile import NUMERIC_CLASSES, MatFileError, check_regular_file, read_variables, variables
+
 __all__ = [
     "G0",
     "M0",
+    "MAX_READING",
+    "MAX_SAMPLES",
     "BroadFormatError",
     "Trial",
     "read_trial",
@@ -50,7 +59,20 @@ __all__ = [
 G0 = 9.81
 M0 = 44.0
 
+#: The most samples one trial file may hold: 16 times BROAD's longest trial (60,861 samples,
+#: 3.5 min at 285.7 Hz), 58 min at that rate; ``broad.apply`` on a file of this length peaked
+#: at 1.06 GB resident. A field whose header claims more is refused before any of it is read.
+MAX_SAMPLES = 1_000_000
+
+#: The largest magnitude an IMU reading may have, in its unit (rad/s, m/s^2, uT): far beyond any
+#: IMU's range (BROAD's largest: 25 rad/s, 155 m/s^2, 86 uT), far inside float32's (the
+#: observer's) 3.4e38 even squared, where a finite 1e300 would become Inf.
+MAX_READING = 1e6
+
 _VECTORS = {"imu_gyr": "rad/s", "imu_acc": "m/s^2", "imu_mag": "uT"}
+_WIDTHS = {"imu_gyr": 3, "imu_acc": 3, "imu_mag": 3, "opt_quat": 4, "movement": 1,
+           "sampling_rate": None}  # fmt: skip
+_REFERENCE = ("opt_quat", "movement")
 _QUAT_TOL = 1e-3
 
 
@@ -63,7 +85,8 @@ class Trial:
     """One BROAD recording of ``T`` samples (numpy float64; see the module docstring).
 
     ``gyr``, ``acc``, ``mag`` ``(T, 3)``; ``quat`` ``(T, 4)`` unit (w, x, y, z) or NaN rows;
-    ``movement`` ``(T,)`` bool; ``rate`` in Hz.
+    ``movement`` ``(T,)`` bool; ``rate`` in Hz; ``movement_in_file``: False where the file had no
+    ``movement`` (read with ``reference=False``) and every sample counts.
     """
 
     name: str
@@ -73,6 +96,7 @@ class Trial:
     quat: np.ndarray
     movement: np.ndarray
     rate: float
+    movement_in_file: bool = True
 
     def __len__(self) -> int:
         return len(self.gyr)
@@ -87,23 +111,46 @@ def _fail(path, field: str, problem: str, fix: str) -> BroadFormatError:
     return BroadFormatError(f"{path}: field {field!r} {problem}; {fix}.")
 
 
+def _not_numeric(path, field: str, what: str) -> BroadFormatError:
+    return _fail(
+        path, field, f"is not a numeric array (got {what}: an object, struct, cell, string or "
+        "function value)", "the BROAD format stores it as a real numeric matrix; re-export the trial",
+    )
+
+
+def _check_header(path, header: dict, fields) -> None:
+    """Each of ``fields`` is in ``header``, numeric, and no larger than :data:`MAX_SAMPLES`
+    samples (the rate: one number), judged from the header alone: nothing is read yet."""
+    for field in fields:
+        if field not in header:
+            raise _fail(
+                path, field, f"is missing (the file has {sorted(header)[:20]}"
+                f"{' and more' if len(header) > 20 else ''})",
+                "use an original BROAD trial file from https://github.com/dlaidig/broad "
+                "(data_mat/), or store the field",
+            )
+        shape, cls = header[field].shape, header[field].cls
+        if cls not in NUMERIC_CLASSES:
+            raise _not_numeric(path, field, f"a Matlab {cls} array")
+        values, width = math.prod(shape), _WIDTHS[field]
+        if width is None and values != 1:
+            raise _fail(path, field, f"has shape {shape}, not one number",
+                        "store the sampling frequency in Hz (285.714 in BROAD)")
+        if width is not None and values > MAX_SAMPLES * width:
+            raise _fail(
+                path, field, f"claims shape {shape} ({values} values), more than this reader's "
+                f"limit of MAX_SAMPLES = {MAX_SAMPLES} samples x {width}",
+                f"split the recording into files of at most {MAX_SAMPLES} samples",
+            )
+
+
 def _numeric(path, raw: dict, field: str) -> np.ndarray:
     """``raw[field]`` as a float64 array, refusing anything but a plain numeric array."""
-    if field not in raw:
-        keys = sorted(k for k in raw if not k.startswith("__"))
-        raise _fail(
-            path, field, f"is missing (the file has {keys})",
-            "use an original BROAD trial file from https://github.com/dlaidig/broad (data_mat/)",
-        )
     value = raw[field]
     arr = np.asarray(value) if isinstance(value, (int, float, np.number)) else value
     if not isinstance(arr, np.ndarray) or arr.dtype.kind not in "biuf":
         kind = getattr(getattr(arr, "dtype", None), "kind", type(arr).__name__)
-        raise _fail(
-            path, field, f"is not a numeric array (got {type(value).__name__} of kind {kind!r}: "
-            "an object, struct, cell, string or function value)",
-            "the BROAD format stores it as a real numeric matrix; re-export the trial",
-        )
+        raise _not_numeric(path, field, f"{type(value).__name__} of kind {kind!r}")
     return arr.astype(np.float64)
 
 
@@ -147,50 +194,66 @@ def _check_rate(path, raw: dict) -> float:
     return float(rate.reshape(-1)[0])
 
 
-def _load(path: Path) -> dict:
-    import scipy.io
-
-    if not path.is_file():
-        raise BroadFormatError(
-            f"{path}: no such file; download the BROAD trials (data_mat/*.mat) from "
-            "https://github.com/dlaidig/broad or pass the right --data-dir."
-        )
+def _load(path: Path, reference: bool) -> dict:
+    """The fields of a trial that ``path`` holds, their header checked before any is read."""
     try:
-        return scipy.io.loadmat(str(path), squeeze_me=True)
-    except Exception as err:  # noqa: BLE001 - any failure of the parser is a format error
-        raise BroadFormatError(
-            f"{path}: not a readable Matlab v5 file ({type(err).__name__}: {err}); use an "
-            "original BROAD trial file."
-        ) from None
+        check_regular_file(path)
+        header = variables(path)
+        fields = [*_VECTORS, "sampling_rate"] + [
+            f for f in _REFERENCE if reference or f in header
+        ]
+        _check_header(path, header, fields)
+        return read_variables(path, header, fields)
+    except MatFileError as err:
+        raise BroadFormatError(str(err)) from None
 
 
-def read_trial(path: str | Path) -> Trial:
-    """The checked :class:`Trial` in ``path``; :class:`BroadFormatError` if anything is off."""
+def _check_readings(path, arrays: dict) -> None:
+    for field, unit in _VECTORS.items():
+        arr = arrays[field]
+        bad = np.flatnonzero(~np.isfinite(arr).all(axis=1))
+        if bad.size:
+            raise _fail(
+                path, field, f"({unit}) holds NaN/Inf in {bad.size} sample(s), first {bad[0]}",
+                "IMU readings must be finite; cut the trial or fill the gap before using it",
+            )
+        big = np.flatnonzero((np.abs(arr) > MAX_READING).any(axis=1))
+        if big.size:
+            raise _fail(
+                path, field, f"({unit}) holds readings beyond +-{MAX_READING:g} in {big.size} "
+                f"sample(s), first {big[0]} ({arr[big[0]].tolist()}): no IMU measures that, and "
+                "the observer computes in float32",
+                "the recording is damaged or in other units; fix or cut those samples",
+            )
+
+
+def read_trial(path: str | Path, reference: bool = True) -> Trial:
+    """The checked :class:`Trial` in ``path``; :class:`BroadFormatError` if anything is off.
+
+    ``reference=False``: ``opt_quat`` and ``movement`` may be missing (see the module
+    docstring); where present they are checked as always."""
     path = Path(path)
-    raw = _load(path)
+    raw = _load(path, reference)
     arrays = {f: _shaped(path, _numeric(path, raw, f), f, 3) for f in _VECTORS}
-    quat = _shaped(path, _numeric(path, raw, "opt_quat"), "opt_quat", 4)
-    movement = _shaped(path, _numeric(path, raw, "movement"), "movement", None)
-    rate = _check_rate(path, raw)
     t = len(arrays["imu_gyr"])
+    quat = (_shaped(path, _numeric(path, raw, "opt_quat"), "opt_quat", 4) if "opt_quat" in raw
+            else np.full((t, 4), np.nan))  # fmt: skip
+    movement = (_shaped(path, _numeric(path, raw, "movement"), "movement", None)
+                if "movement" in raw else np.ones(t))  # fmt: skip
+    rate = _check_rate(path, raw)
     for field, arr in [*arrays.items(), ("opt_quat", quat), ("movement", movement)]:
         if len(arr) != t:
             raise _fail(
                 path, field, f"has {len(arr)} samples but imu_gyr has {t}",
                 "every per-sample field must have the same number of rows T",
             )
-    for field, unit in _VECTORS.items():
-        bad = np.flatnonzero(~np.isfinite(arrays[field]).all(axis=1))
-        if bad.size:
-            raise _fail(
-                path, field, f"({unit}) holds NaN/Inf in {bad.size} sample(s), first {bad[0]}",
-                "IMU readings must be finite; cut the trial or fill the gap before using it",
-            )
+    _check_readings(path, arrays)
     if not np.isin(movement, (0.0, 1.0)).all():
         raise _fail(path, "movement", "holds values other than 0 and 1", "store a 0/1 mask")
     return Trial(
         name=path.stem, gyr=arrays["imu_gyr"], acc=arrays["imu_acc"], mag=arrays["imu_mag"],
         quat=_check_quat(path, quat), movement=movement.astype(bool), rate=rate,
+        movement_in_file="movement" in raw,
     )
 
 
@@ -198,7 +261,7 @@ def read_trials(data_dir: str | Path, names) -> list[Trial]:
     """The trials ``names`` (file stems: ``01_undisturbed_slow_rotation_A``) in ``data_dir``."""
     data_dir = Path(data_dir)
     names = [str(n).removesuffix(".mat") for n in names]
-    missing = [n for n in names if not (data_dir / f"{n}.mat").is_file()]
+    missing = [n for n in names if not (data_dir / f"{n}.mat").exists()]
     if missing:
         raise BroadFormatError(
             f"{data_dir}: missing trial file(s) {[m + '.mat' for m in missing]}; download the "

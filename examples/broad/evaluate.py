@@ -9,12 +9,17 @@ magnetometer reading, then the observer at every sample), all trials of a split 
 (shorter ones padded at the end: the observer is causal, so padding never changes an earlier
 estimate). Writes ``results/learned_<split>.json`` (per trial and mean total, heading and
 inclination RMSE in degrees) and ``results/learned_<split>_quaternions.npz`` (one array per
-trial, ``(T, 4)`` w, x, y, z) for the comparison (:mod:`.compare`).
+trial, ``(T, 4)`` w, x, y, z) for the comparison (:mod:`.compare`), each atomically (a failed
+write leaves the previous file whole). Everything is checked before the first estimate: the
+split names, that the results folder can be written, that every trial has samples to score
+(``movement`` with a reference). Non-finite estimates are an error naming the trial, raised
+before that split's files are written.
 """
 
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import logging
 import time
@@ -24,16 +29,18 @@ import numpy as np
 import torch
 
 from manifold_nets import load_observer
-from manifold_nets.atomic import write_text_atomic
+from manifold_nets.atomic import atomic_open, write_text_atomic
 from manifold_nets.data import TrajectoryDataset, collate_trajectories
+from manifold_nets.destination import check_destination
+from manifold_nets.threads import use_threads
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
-from .data import Trial, read_trials, split_trials, trials_to_dataset
+from .data import BroadFormatError, Trial, read_trials, split_trials, trials_to_dataset
 from .learning import estimate_rotations
 from .metric import matrix_to_quat, rmse
 from .rate import decimate, upsample
 
-__all__ = ["pad_trials", "observer_quaternions", "evaluate_run"]
+__all__ = ["pad_trials", "observer_quaternions", "check_scored", "chosen_splits", "evaluate_run"]
 
 log = logging.getLogger("broad.evaluate")
 
@@ -67,37 +74,85 @@ def decimation(system, rate: float) -> int:
     return k
 
 
-def observer_quaternions(observer, system, trials: list[Trial]) -> list[np.ndarray]:
+def observer_quaternions(
+    observer, system, trials: list[Trial], source: str = "the observer"
+) -> list[np.ndarray]:
     """The observer's quaternions ``(T_i, 4)`` per trial, one per sample (between the
-    observer's steps, the gyroscope integrated from its last estimate: :mod:`.rate`)."""
+    observer's steps, the gyroscope integrated from its last estimate: :mod:`.rate`).
+
+    ``ValueError`` naming ``source`` and the trial where an estimate is NaN or Inf (NaN
+    weights, a diverging observer): a file of NaN quaternions is never the answer."""
     batch, lengths = pad_trials(trials)
     k = decimation(system, trials[0].rate)
     dt = 1.0 / trials[0].rate
     R = estimate_rotations(observer, system, decimate(batch, k, dt))
     R = upsample(R, batch.inputs.to(R), dt, k)
     q = matrix_to_quat(R.numpy())
-    return [q[i, :n] for i, n in enumerate(lengths)]
+    out = [q[i, :n] for i, n in enumerate(lengths)]
+    for t, qt in zip(trials, out):
+        bad = np.flatnonzero(~np.isfinite(qt).all(axis=1))
+        if bad.size:
+            raise ValueError(
+                f"{source} gave non-finite estimates on {t.name} at {bad.size} of {len(qt)} "
+                f"samples (first {bad[0]}): NaN or Inf weights, or a diverging observer; "
+                "nothing was written."
+            )
+    return out
+
+
+def check_scored(trials: list[Trial], what: str) -> None:
+    """``BroadFormatError`` naming each trial of ``trials`` (``what``: where they come from) that
+    has no sample to score (``movement`` with a known reference): checked before any work."""
+    empty = [t.name for t in trials if not (t.movement & t.known).any()]
+    if empty:
+        raise BroadFormatError(
+            f"{what}: trial(s) {empty} have no sample with movement == 1 and a known reference, "
+            "so they cannot be scored; take them out of the split."
+        )
+
+
+def chosen_splits(names, split: dict, option: str) -> list[str]:
+    """``names`` (a comma-separated string or a list) checked against the split file's
+    splits: ``BroadFormatError`` naming ``option`` unless it names at least one, all known."""
+    chosen = [n for n in (names.split(",") if isinstance(names, str) else names) if n]
+    unknown = [n for n in chosen if n not in split]
+    if not chosen or unknown:
+        raise BroadFormatError(
+            f"{option} {','.join(chosen) or repr(names)}: "
+            f"{'unknown split(s) ' + str(unknown) if unknown else 'names no split'}; the split "
+            f"file has {sorted(split)} (e.g. {option} {','.join(sorted(split)[:2])})."
+        )
+    return chosen
+
+
+def _save_npz(path: Path, arrays: dict) -> None:
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    with atomic_open(path, "wb") as f:
+        f.write(buf.getvalue())
 
 
 def evaluate_run(run: str | Path, data_dir=None, split_file=None, splits=("val", "test")) -> dict:
     """Evaluates the run's observer on whole trials of ``splits``; returns ``{split: rows}``."""
     run = Path(run)
-    observer, system, _ = load_observer(run)
     default_dir, split = split_trials(split_file)
+    splits = chosen_splits(splits, split, "--splits")
+    out = check_destination(run / "results", folder=True, option="results folder")
+    observer, system, _ = load_observer(run)
     data_dir = data_dir or default_dir
-    out = run / "results"
-    out.mkdir(parents=True, exist_ok=True)
+    every = {name: read_trials(data_dir, split[name]) for name in splits}
+    for name, trials in every.items():
+        check_scored(trials, f"split {name!r}")
     results = {}
-    for name in splits:
-        trials = read_trials(data_dir, split[name])
+    for name, trials in every.items():
         t0 = time.perf_counter()
-        quats = observer_quaternions(observer, system, trials)
+        quats = observer_quaternions(observer, system, trials, source=str(run))
         seconds = time.perf_counter() - t0
         rows = {t.name: rmse(q, t.quat, t.movement) for t, q in zip(trials, quats)}
         mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in next(iter(rows.values()))}
         results[name] = {"trials": rows, "mean": mean, "seconds": seconds}
         write_text_atomic(out / f"learned_{name}.json", json.dumps(results[name], indent=1) + "\n")
-        np.savez(out / f"learned_{name}_quaternions.npz", **{t.name: q for t, q in zip(trials, quats)})
+        _save_npz(out / f"learned_{name}_quaternions.npz", {t.name: q for t, q in zip(trials, quats)})
         log.info("%s: mean total %.3f deg, heading %.3f, inclination %.3f (%d trials, %.0f s)",
                  name, mean["total"], mean["heading"], mean["inclination"], len(trials), seconds)
     return results
@@ -109,9 +164,15 @@ def main(argv=None) -> None:
     p.add_argument("--data-dir", default=None, help="default: the split file's data_dir")
     p.add_argument("--split", default=None, help="trials yaml (default configs/broad/trials.yaml)")
     p.add_argument("--splits", default="val,test")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads (default: one, or OMP_NUM_THREADS)")
     args = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
-    evaluate_run(args.run, args.data_dir, args.split, args.splits.split(","))
+    try:
+        use_threads(args.threads)
+        evaluate_run(args.run, args.data_dir, args.split, args.splits)
+    except (ValueError, OSError) as err:
+        raise SystemExit(f"error: {err}") from None
 
 
 if __name__ == "__main__":

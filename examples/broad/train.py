@@ -20,6 +20,13 @@ The run folder then holds ``config.yaml`` and ``checkpoints/best.pt`` (the last 
 model: ``manifold_nets.load_observer(<run folder>)`` and ``broad.apply`` read it) and the
 evaluation on whole validation and test trials from their first sample
 (:func:`~.compare.comparison`): ``results/``. The split is ``configs/broad/trials.yaml``.
+
+Every argument is checked before any work (:func:`prepare`): the numbers' ranges, the run
+folder (a folder that can be written and holds no trained observer), the split names of
+``--eval-splits``, the trials (read whole; the fine-tuning windows cut from them, so a window
+longer than every trial fails here), that each evaluated trial has samples to score, and
+``--init-from`` (loaded into the model). Errors end the command with ``error: ...``; the best
+checkpoint is copied into place atomically.
 """
 
 from __future__ import annotations
@@ -27,6 +34,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import math
 import shutil
 import time
 from dataclasses import asdict
@@ -36,10 +44,14 @@ import torch
 import yaml
 
 from manifold_nets import TrainSettings, fit
-from manifold_nets.atomic import write_text_atomic
+from manifold_nets.atomic import atomic_open, write_text_atomic
 from manifold_nets.checkpoint import load_weights
+from manifold_nets.destination import check_destination
+from manifold_nets.threads import use_threads
+from manifold_nets.training import check_settings
 
-from .data import read_trials, split_trials, trials_to_dataset
+from .data import BroadFormatError, read_trials, split_trials, trials_to_dataset
+from .evaluate import check_scored, chosen_splits, evaluate_run
 from .learning import RandomMounting, make_observer, model_config, near_truth_start
 from .rate import decimate
 from .simulator import BROAD_DT, BroadSimulator
@@ -75,8 +87,41 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="truncated BPTT: an optimizer step per this many observer steps")
     p.add_argument("--init-from", default=None, help="start from this checkpoint or run folder")
     p.add_argument("--eval-splits", default="val,test", help="splits evaluated on whole trials")
-    p.add_argument("--threads", type=int, default=None)
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads (default: one, or OMP_NUM_THREADS)")
     return p.parse_args(argv)
+
+
+def check_args(args) -> None:
+    """The arguments that need no file, checked: ``ValueError`` naming the flag."""
+    def bad(flag: str, want: str, got) -> ValueError:
+        return ValueError(f"{flag} must be {want}, got {got!r}.")
+
+    for flag in ("hidden_size", "num_layers", "decimation", "pretrain_length", "window",
+                 "stride", "batch_size"):  # fmt: skip
+        if getattr(args, flag) < 1:
+            raise bad("--" + flag.replace("_", "-"), "an integer >= 1", getattr(args, flag))
+    for flag in ("pretrain_epochs", "finetune_epochs", "seed"):
+        if getattr(args, flag) < 0:
+            raise bad("--" + flag.replace("_", "-"), "an integer >= 0", getattr(args, flag))
+    for flag in ("max_batches", "tbptt", "threads"):
+        if getattr(args, flag) is not None and getattr(args, flag) < 1:
+            raise bad("--" + flag.replace("_", "-"), "an integer >= 1 (or left out)",
+                      getattr(args, flag))  # fmt: skip
+    if args.pretrain_sequences == 1 or args.pretrain_sequences < 0:
+        raise bad("--pretrain-sequences", "0 (no pre-training) or >= 2 (one in 8, at least one, "
+                  "validates)", args.pretrain_sequences)  # fmt: skip
+    for flag in ("output_scale", "lr"):
+        if not (math.isfinite(getattr(args, flag)) and getattr(args, flag) > 0):
+            raise bad("--" + flag.replace("_", "-"), "a finite number > 0", getattr(args, flag))
+    if not (math.isfinite(args.start_std) and args.start_std >= 0):
+        raise bad("--start-std", "a finite number >= 0 (radians)", args.start_std)
+    if not 0 <= args.mounting <= math.pi:
+        raise bad("--mounting", "an angle in [0, pi] radians (0: no augmentation)", args.mounting)
+    if not args.init_from and not (args.pretrain_sequences and args.pretrain_epochs) \
+            and not args.finetune_epochs:
+        raise ValueError("nothing to train: give --pretrain-epochs, --finetune-epochs or "
+                         "--init-from.")
 
 
 def settings(args, epochs: int) -> TrainSettings:
@@ -103,16 +148,24 @@ def pretrain(args, system, model, out: Path, config: dict) -> Path:
     return res.best_path
 
 
-def finetune(args, system, model, out: Path, split: dict, config: dict) -> Path:
-    """Stage 2 (real windows of the training trials); returns its best checkpoint."""
+def windows(args, trials: dict) -> tuple:
+    """The fine-tuning data: windows of the training trials (every ``--stride``) and of the
+    validation trials (none overlapping), decimated to the observer's step."""
     k = args.decimation
-    train = trials_to_dataset(
-        read_trials(args.data_dir, split["train"]), args.window * k, args.stride * k
-    )
-    val = trials_to_dataset(
-        read_trials(args.data_dir, split["val"]), args.window * k, args.window * k
-    )
-    train, val = decimate(train, k, BROAD_DT), decimate(val, k, BROAD_DT)
+    try:
+        train = trials_to_dataset(trials["train"], args.window * k, args.stride * k)
+        val = trials_to_dataset(trials["val"], args.window * k, args.window * k)
+    except BroadFormatError as err:
+        raise BroadFormatError(
+            f"--window {args.window} x --decimation {k} = {args.window * k} samples: {err}"
+        ) from None
+    return decimate(train, k, BROAD_DT), decimate(val, k, BROAD_DT)
+
+
+def finetune(args, system, model, out: Path, data: tuple, config: dict) -> Path:
+    """Stage 2 (real windows of the training trials: :func:`windows`); returns its best
+    checkpoint."""
+    train, val = data
     log.info("finetune: %d training windows, %d validation windows of %d samples",
              len(train), len(val), args.window)
     augment = RandomMounting(args.mounting) if args.mounting > 0 else None
@@ -134,47 +187,72 @@ def _config(args, system, model_cfg) -> dict:
     return {"name": "broad", "seed": args.seed, "system": sys_cfg, "model": model}
 
 
-def run(args) -> Path:
-    out = Path(args.out)
+def prepare(args) -> dict:
+    """Everything checked and read before any work (module docstring); ``BroadFormatError`` or
+    ``ValueError`` naming the argument. Returns what :func:`run` needs."""
+    check_args(args)
+    out = check_destination(args.out, folder=True)
     if (out / "checkpoints" / "best.pt").exists():
-        raise SystemExit(f"{out} already holds a trained observer; choose another --out.")
+        raise ValueError(f"--out {out} already holds a trained observer; choose another --out.")
     data_dir, split = split_trials(args.split)
     args.data_dir = args.data_dir or data_dir
-    read_trials(args.data_dir, [n for names in split.values() for n in names])  # fail early
-    out.mkdir(parents=True, exist_ok=True)
-    if args.threads:
-        torch.set_num_threads(args.threads)
+    evaluated = chosen_splits(args.eval_splits, split, "--eval-splits")
+    stages = ["train", "val"] if args.finetune_epochs > 0 else []
+    missing = [s for s in stages if s not in split]
+    if missing:
+        raise BroadFormatError(f"{args.split or 'configs/broad/trials.yaml'}: fine-tuning needs "
+                               f"the split(s) {missing}; the file has {sorted(split)}.")
+    trials = {s: read_trials(args.data_dir, split[s]) for s in dict.fromkeys(stages + evaluated)}
+    for s in evaluated:
+        check_scored(trials[s], f"--eval-splits {s}")
     system = BroadSimulator(dt=args.decimation * BROAD_DT)  # the observer's step
     model_cfg = model_config(args.hidden_size, args.num_layers, args.output_scale)
     model = make_observer(system, model_cfg, args.seed)
-    config = _config(args, system, model_cfg)
+    for epochs in (args.pretrain_epochs, args.finetune_epochs):
+        check_settings(settings(args, epochs))
+    init = None
+    if args.init_from:
+        try:
+            init = load_weights(model, args.init_from)[0]
+        except (ValueError, OSError) as err:
+            raise ValueError(f"--init-from {args.init_from}: {err}") from None
+    return {
+        "out": out, "system": system, "model": model, "model_cfg": model_cfg,
+        "windows": windows(args, trials) if stages else None, "init": init,
+    }
+
+
+def run(args) -> Path:
+    """Trains by the arguments (:func:`parse_args`), checked first (:func:`prepare`)."""
+    ready = prepare(args)
+    out, system, model = ready["out"], ready["system"], ready["model"]
+    out.mkdir(parents=True, exist_ok=True)
+    config = _config(args, system, ready["model_cfg"])
     write_text_atomic(out / "config.yaml", yaml.safe_dump(config, sort_keys=False))
     write_text_atomic(out / "command.json", json.dumps(vars(args), indent=1) + "\n")
-    best = None
-    if args.init_from:
-        best, _ = load_weights(model, args.init_from)
+    best = ready["init"]
     if args.pretrain_sequences > 0 and args.pretrain_epochs > 0:
         best = pretrain(args, system, model, out, config)
         load_weights(model, best)
     if args.finetune_epochs > 0:
-        best = finetune(args, system, model, out, split, config)
+        best = finetune(args, system, model, out, ready["windows"], config)
         load_weights(model, best)
-    if best is None:
-        raise SystemExit("nothing to train: give --pretrain-epochs, --finetune-epochs or --init-from")
-    (out / "checkpoints").mkdir(exist_ok=True)
-    shutil.copyfile(best, out / "checkpoints" / "best.pt")
+    with open(best, "rb") as src, atomic_open(out / "checkpoints" / "best.pt", "wb") as dst:
+        shutil.copyfileobj(src, dst)
     return out
 
 
 def main(argv=None) -> None:
     logging.basicConfig(level=logging.INFO, format="[%(asctime)s][%(name)s] %(message)s")
     args = parse_args(argv)
-    t0 = time.perf_counter()
-    out = run(args)
-    log.info("trained in %.0f s: %s", time.perf_counter() - t0, out)
-    from .evaluate import evaluate_run
-
-    evaluate_run(out, args.data_dir, args.split, args.eval_splits.split(","))
+    try:
+        use_threads(args.threads)
+        t0 = time.perf_counter()
+        out = run(args)
+        log.info("trained in %.0f s: %s", time.perf_counter() - t0, out)
+        evaluate_run(out, args.data_dir, args.split, args.eval_splits)
+    except (ValueError, OSError) as err:
+        raise SystemExit(f"error: {err}") from None
 
 
 if __name__ == "__main__":

@@ -14,7 +14,11 @@ string (the observer's signature, the checkpoint, the data file). Read it back w
 ``numpy.load(path, allow_pickle=False)``.
 
 The sequences are run ``--batch-size`` at a time and each batch ``--chunk`` steps at a time
-(the observer's state carried over), with a progress bar on a terminal.
+(the observer's state carried over), with a progress bar on a terminal, on one torch thread
+unless ``--threads`` (or ``OMP_NUM_THREADS``) asks for more (:mod:`manifold_nets.threads`).
+``--out`` is checked before any work (:func:`manifold_nets.destination.check_destination`);
+non-finite estimates are an error and nothing is written. ``mn-apply`` ends an error with
+``error: ...`` and exit status 1, not a traceback.
 
 The run's system is found by the registry: the project's example systems and those an installed
 package declares as entry points (:mod:`manifold_nets.plugins`) load with no import by hand; the
@@ -34,9 +38,11 @@ import torch
 
 from manifold_nets.atomic import atomic_open
 from manifold_nets.data import load_dataset
+from manifold_nets.destination import check_destination
 from manifold_nets.loading import load_observer
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.progress import progress
+from manifold_nets.threads import use_threads
 
 __all__ = ["apply_observer", "main", "run"]
 
@@ -75,20 +81,20 @@ def run(argv: Sequence[str] | None = None) -> Path:
     p.add_argument("--out", required=True, help="where to write the estimates (.npz)")
     p.add_argument("--batch-size", type=int, default=256, help="sequences run at once")
     p.add_argument("--chunk", type=int, default=1000, help="steps run at once")
-    p.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="torch threads (default: one, or OMP_NUM_THREADS)")
     p.add_argument("--no-progress", action="store_true")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if a.batch_size < 1 or a.chunk < 1:
         p.error("--batch-size and --chunk must be positive")
-    out = Path(a.out)
-    if out.suffix != ".npz":
-        p.error(f"--out {out}: the estimates are written as a .npz archive; name it <name>.npz")
-    if out.is_dir() or any(q.exists() and not q.is_dir() for q in out.parents):
-        p.error(f"--out {out}: {'a folder' if out.is_dir() else 'a file is in its path'}; give a "
-                "path of a new or existing .npz file")
-    if a.threads:
-        torch.set_num_threads(a.threads)
+    if a.threads is not None and a.threads < 1:
+        p.error(f"--threads must be an integer >= 1 (or left out), got {a.threads}")
+    try:
+        out = check_destination(a.out, suffixes=(".npz",))
+    except ValueError as err:
+        p.error(str(err))
+    use_threads(a.threads)
     observer, system, _ = load_observer(a.model)
     data = load_dataset(a.data, group=system.group)
     log.info("%s: %d sequences of %d steps", a.data, len(data), data.length)
@@ -114,8 +120,12 @@ def run(argv: Sequence[str] | None = None) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """The console script ``mn-apply``: :func:`run`, exit status 0."""
-    run(argv)
+    """The console script ``mn-apply``: :func:`run`, exit status 0; an error (a file that is
+    refused, non-finite estimates) ends it with ``error: ...`` and status 1."""
+    try:
+        run(argv)
+    except (ValueError, OSError) as err:
+        raise SystemExit(f"error: {err}") from None
     return 0
 
 

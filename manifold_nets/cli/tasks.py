@@ -219,8 +219,9 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     out_dir.mkdir(parents=True, exist_ok=True)
     resolved = OmegaConf.to_container(cfg, resolve=True)
     write_text_atomic(out_dir / "config.yaml", OmegaConf.to_yaml(resolved))
-    if cfg.train.threads is not None:  # checked (>= 1) by check_settings
-        torch.set_num_threads(int(cfg.train.threads))
+    from manifold_nets.threads import use_threads  # one rule for every command's threads
+
+    use_threads(None if cfg.train.threads is None else int(cfg.train.threads))
     board = TensorBoardLog(out_dir / "tensorboard") if cfg.train.tensorboard else None
     try:
         metrics = _train_and_evaluate(cfg, out_dir, board, system, device)
