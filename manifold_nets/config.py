@@ -204,7 +204,8 @@ class TrainSettings:
     stream: bool = False
     #: ``cpu``, ``cuda``, ``cuda:1``, ... or ``auto`` (cuda when available).
     device: str = "cpu"
-    #: torch intra-op threads (``null``: torch's default).
+    #: torch intra-op threads (``null``: one, or ``OMP_NUM_THREADS`` when set;
+    #: :func:`manifold_nets.threads.use_threads`).
     threads: Optional[int] = None
     #: Compile the observer's step with ``torch.compile`` for training (fused kernels, faster
     #: epochs after a one-off compilation; needs a C++ compiler).

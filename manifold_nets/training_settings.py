@@ -59,7 +59,7 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
     for name, none in (
         ("max_batches", "the whole training split"),
         ("tbptt", "backpropagation through the whole rollout"),
-        ("threads", "torch's default"),
+        ("threads", "one thread, or OMP_NUM_THREADS when set"),
     ):
         val = getattr(settings, name)
         if val is not None and (not _is_int(val) or val < 1):

@@ -473,7 +473,7 @@ def _calls(path: Path, name: str) -> bool:
 
 
 def test_every_command_sets_its_threads_through_use_threads():
-    commands = [ROOT / "manifold_nets" / "cli" / f for f in ("apply.py", "tasks.py")]
+    commands = [ROOT / "manifold_nets" / "cli" / f for f in ("apply.py", "tasks.py", "generate.py")]
     commands += [p for p in (ROOT / "examples").rglob("*.py")
                  if "def main(" in p.read_text() and "import main" not in p.read_text()]
     assert len(commands) >= 7, commands

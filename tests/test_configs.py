@@ -300,8 +300,8 @@ def test_multirun_and_sweep_table(tmp_path):
                             "model is kept), got -1."),
         ("train.epochs=0", "train.epochs=0 trains nothing: it evaluates train.init_from's "
                            "weights as they are"),
-        ("train.threads=0", "train.threads must be an integer >= 1 or None (null: torch's "
-                            "default), got 0."),
+        ("train.threads=0", "train.threads must be an integer >= 1 or None (null: one thread, "
+                            "or OMP_NUM_THREADS when set), got 0."),
         ("train.device=tpu", "train.device='tpu' is not a device; use cpu, cuda, cuda:<index> "
                              "or auto"),
         ("system.dt=1", "RigidBody: one step can turn by up to sqrt(3) * (omega_range + "

@@ -4,6 +4,7 @@ The Berlin Robust Orientation Estimation Assessment Dataset (Laidig, Caruso, Cer
 Data 6(7):72, 2021, https://doi.org/10.3390/data6070072; data CC-BY-4.0,
 https://github.com/dlaidig/broad). Modules:
 
+* :mod:`.matfile`    read a ``.mat`` file's header first and only the fields asked for, bounded;
 * :mod:`.data`       read and check a trial's ``.mat`` file, make a ``TrajectoryDataset`` of trials;
 * :mod:`.metric`     the benchmark's error metric (total / heading / inclination RMSE, degrees);
 * :mod:`.simulator`  an attitude simulator with this IMU's sensor models, for pre-training;

@@ -10,16 +10,9 @@
 ======================================  ==================================================
 
 Each command builds objects from its config with :mod:`manifold_nets.builders`, logs a line,
-and calls the library; no library module imports a command.
+and calls the library; no library module imports a command. Every command sets torch's threads
+one way, :func:`manifold_nets.threads.use_threads` (one thread unless asked).
 """
-
-import os
-
-# OpenMP threads that spin while they wait slow torch down many times as soon as another process
-# shares the cores (benchmarks/README.md); sleeping waits cost a wake-up per parallel region
-# instead. Only effective when a command imports torch first; an OMP_WAIT_POLICY set by the
-# user wins.
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 #: Where the hydra commands find their primary configs: the repository's ``configs/``, installed as
 #: the package ``manifold_nets_configs``, so the commands run from any folder. A user's own configs

@@ -30,6 +30,9 @@ log = logging.getLogger(__name__)
 
 def generate(cfg: DictConfig) -> dict:
     """The splits of ``cfg.dataset`` for ``cfg.system``, generated or read from the cache."""
+    from manifold_nets.threads import use_threads
+
+    use_threads()  # one thread, or OMP_NUM_THREADS (simulation is per-step work too)
     dataset: DatasetConfig = OmegaConf.to_object(cfg.dataset)
     system = build_system(cfg.system)
     parts = load_or_generate(system, dataset, cache_dir=absolute(dataset.cache_dir))
