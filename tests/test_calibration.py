@@ -104,3 +104,25 @@ def test_shapes_are_checked():
         calibration(GROUP, torch.zeros(2, 6), torch.zeros(2, 6, 6))
     with pytest.raises(ValueError, match="6 components|components"):
         calibration(GROUP, torch.zeros(2, 3, 5), torch.zeros(2, 3, 5, 5))
+
+
+def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout(tmp_path):
+    """The command of docs/calibration.md at a tiny size: the table rows for both estimators,
+    the figure, and a readout that loads back onto the zoo entry."""
+    import json
+
+    from manifold_nets import load_observer
+    from manifold_nets.covariance_training import load_readout
+    from manifold_nets_examples.rigid_body import calibration as command
+
+    command.main(["--out", str(tmp_path), "--cases", "nominal", "--sigmas", "0.3", "--train", "2",
+                  "--eval", "3", "--length", "30", "--epochs", "1"])
+    table = (tmp_path / "calibration.md").read_text()
+    assert "| 0.3 | learned |" in table and "| 0.3 | ekf |" in table
+    rows = json.loads((tmp_path / "calibration.json").read_text())["cases"]["nominal"]["0.3"]
+    for estimator in ("learned", "ekf"):
+        assert set(rows[estimator]) == {"R", "p", "b_omega", "b_v"}
+        assert all(math.isfinite(v) for v in rows[estimator]["R"].values())
+    assert (tmp_path / "calibration_nominal.png").stat().st_size > 10_000
+    observer, _, _ = load_observer("zoo:rigid_body/nominal")
+    load_readout(tmp_path / "nominal_covariance.pt", observer)

@@ -170,3 +170,22 @@ def test_a_saved_readout_loads_back_and_a_foreign_one_is_refused(tmp_path):
                 "model": {**r.state_dict(), "out.weight": torch.zeros(2, 2)}}, tmp_path / "w.pt")
     with pytest.raises(CheckpointError, match="w.pt.*out.weight"):
         load_readout(tmp_path / "w.pt", obs)
+
+
+def test_the_calibrated_step_exports_with_torch_export_and_gives_the_same_covariance():
+    obs = _observer()
+    r = CovarianceReadout(GROUP, input_width(obs, "residual"), "factor", memory=4)
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.3)
+    step = CalibratedObserver(obs, r).online_step_module().eval()
+    y = _measurements(2, 3)
+    args = (*step.initial_state(2), y[:, 0])
+    program = torch.export.export(step, args)
+    flat_eager, flat_exported = step.initial_state(2), step.initial_state(2)
+    with torch.no_grad():
+        for k in range(3):
+            *flat_eager, P = step(*flat_eager, y[:, k])
+            *flat_exported, P_exp = program.module()(*flat_exported, y[:, k])
+            torch.testing.assert_close(P_exp, P, rtol=1e-6, atol=1e-12)
+            torch.testing.assert_close(flat_exported[0], flat_eager[0], rtol=0, atol=1e-12)

@@ -31,12 +31,22 @@ ENTRIES = [
 ]
 
 
+COVARIANCES = [
+    "rigid_body/nominal", "rigid_body/outliers", "rigid_body/correlated", "rigid_body/bias_walk",
+]
+
+
 def test_the_zoo_is_these_entries_and_at_most_eight_checkpoints_ship():
     assert zoo_entries() == sorted(ENTRIES)
-    # what a checkout holds (tests/ keeps its own small fixtures), never a run's outputs
+    # what a checkout holds (tests/ keeps its own small fixtures), never a run's outputs: the
+    # entries' checkpoints and their covariance readouts, nothing else
     folders = ["examples", "manifold_nets", "groups", "configs", "docs", "benchmarks"]
     shipped = [p for f in folders for p in (ROOT / f).rglob("*.pt")]
-    assert len(shipped) <= 8, shipped
+    checkpoints = [p for p in shipped if p.parent.name == "checkpoints"]
+    readouts = sorted(p.parent for p in shipped if p.name == "covariance.pt")
+    assert len(checkpoints) <= 8, checkpoints
+    assert readouts == sorted(zoo_path(n) for n in COVARIANCES)
+    assert len(shipped) == len(checkpoints) + len(readouts), shipped
 
 
 @pytest.mark.parametrize("name", ENTRIES)
@@ -100,3 +110,25 @@ def test_a_run_of_an_example_system_loads_with_no_import_by_hand():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "MismatchedRigidBody"  # the bias walk's true system
+
+
+@pytest.mark.parametrize("name", COVARIANCES)
+def test_an_entry_s_covariance_loads_and_is_calibrated_on_fresh_data(name):
+    """The readout (docs/calibration.md) on 40 fresh sequences of the entry's own system at sigma
+    0.3: its ANEES of R and p near 1 (measured 0.95-1.07 on 100 x 300), where a readout that
+    did not follow the noise would be off by the noise level's spread (0.1-0.5: 25x in variance)."""
+    from manifold_nets.calibration import calibration, tangent_errors
+    from manifold_nets.covariance_training import load_readout
+
+    observer, system, _ = load_observer(f"zoo:{name}")
+    calibrated = load_readout(zoo_path(name) / "covariance.pt", observer)
+    assert (zoo_path(name) / "covariance.pt").stat().st_size < 2**20
+    assert "covariance.pt" in (zoo_path(name) / "card.md").read_text()
+    data = system.simulate(40, 150, 0.3, torch.Generator().manual_seed(321))
+    with torch.no_grad():
+        est, cov = calibrated(data.measurements)
+        assert torch.equal(est, observer(data.measurements))  # the point estimate is the entry's
+    xi = tangent_errors(system.group, est[:, 10:], data.states[:, 10:])
+    out = calibration(system.group, xi, cov[:, 10:])
+    for factor in ("R", "p"):
+        assert 0.75 < out[factor].anees < 1.33, (name, factor, out[factor].anees)

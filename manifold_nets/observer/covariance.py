@@ -165,7 +165,11 @@ class CovarianceReadout(nn.Module):
         z = (inputs - self.shift) / self.scale
         if self.gru is None:
             return self.out(z), memory
-        seq, last = self.gru(z, memory.unsqueeze(0).contiguous())
+        g = self.gru
+        if z.shape[1] == 1:  # one step (online, exported): the cell, as the core steps
+            h = torch.gru_cell(z[:, 0], memory, g.weight_ih_l0, g.weight_hh_l0, g.bias_ih_l0, g.bias_hh_l0)
+            return self.out(h).unsqueeze(1), h
+        seq, last = g(z, memory.unsqueeze(0).contiguous())
         return self.out(seq), last.squeeze(0)
 
     def _factor(self, raw: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,209 @@
+"""How far to trust the learned observer's covariance, beside the EKF's: the paper's rigid body at
+every noise level and under each model mismatch.
+
+::
+
+    python -m manifold_nets_examples.rigid_body.calibration --out outputs/calibration
+    python -m manifold_nets_examples.rigid_body.calibration --cases nominal --sigmas 0.1 0.5 \\
+        --train 20 --eval 20 --length 100 --epochs 2 --out /tmp/cal     # a quick look
+
+For each case (a zoo observer and the system it is scored on):
+
+1. a :class:`~manifold_nets.observer.CovarianceReadout` (per-factor blocks, reading the residuals
+   of the measured pose, a 32-wide memory) is
+   fitted to the frozen observer's errors on ``--train`` sequences per noise level of the case's
+   own system (seeds 1000 + i; :func:`manifold_nets.covariance_training.fit_covariance`) and
+   written to ``OUT/<case>_covariance.pt`` (:func:`~manifold_nets.covariance_training.
+   load_readout` reads it back);
+2. on ``--eval`` fresh sequences per noise level (seed 7), the learned observer's and the nominal
+   EKF's calibration (:mod:`manifold_nets.calibration`) over the steps ``k >= 10``: ANEES per
+   factor, the share of steps whose ANEES is inside its 95 % band, the share of errors inside the
+   3-sigma ellipsoid; the EKF is the one that knows the nominal model and sigma (started at step
+   5 from the first measurements, as in every table of the project).
+
+Writes ``OUT/calibration.md`` (the tables), ``OUT/calibration.json`` and
+``OUT/calibration_<case>.png`` (one sequence's attitude and position errors with the +-3 sigma
+bands of both, at sigma 0.3). The sensor-error case is scored with the nominal observer (one zoo
+entry serves both) and the nominal readout.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+import torch
+
+from manifold_nets import load_observer
+from manifold_nets.atomic import atomic_open, write_text_atomic
+from manifold_nets.calibration import calibration, tangent_errors
+from manifold_nets.covariance_training import (
+    Sequences,
+    fit_covariance,
+    readout_sequences,
+    save_readout,
+)
+from manifold_nets.observer import CalibratedObserver, CovarianceReadout
+from manifold_nets.observer.covariance import input_width
+from manifold_nets.threads import use_threads
+
+from .ekf_estimator import RigidBodyEKF
+from .mismatch import MismatchedRigidBody
+
+__all__ = ["CASES", "ekf_with_covariance", "main"]
+
+#: case -> (zoo entry, system overrides of MismatchedRigidBody, the case whose readout it uses)
+CASES = {
+    "nominal": ("rigid_body/nominal", None, "nominal"),
+    "sensor": ("rigid_body/nominal", {"scale_factor": 0.1, "misalignment": 0.05}, "nominal"),
+    "outliers": ("rigid_body/outliers", None, "outliers"),
+    "correlated": ("rigid_body/correlated", None, "correlated"),
+    "bias_walk": ("rigid_body/bias_walk", None, "bias_walk"),
+}
+SIGMAS = (0.1, 0.2, 0.3, 0.4, 0.5)
+SKIP = 10
+
+
+def ekf_with_covariance(system, sigma: float, data) -> tuple[torch.Tensor, torch.Tensor]:
+    """The nominal EKF's estimates ``(N, T+1, 18)`` and covariances ``(N, T+1, 12, 12)`` (NaN
+    before its start at step 5)."""
+    ekf = RigidBodyEKF(system, sigma)
+    y, m = data.measurements, ekf.init_steps
+    x, P = ekf.start_belief(y[:, :m])
+    res = ekf.ekf.filter(y[:, m:], x0=x, P0=P, return_covariances=True)
+    n_el = ekf.group.element_shape[0]
+    est = torch.cat([system.group.identity((len(y), m), dtype=y.dtype), res.estimates[..., :n_el]], 1)
+    n = system.group.tangent_dim
+    cov = torch.full((len(y), m, n, n), float("nan"), dtype=y.dtype)
+    return est, torch.cat([cov, res.covariances[..., :n, :n]], 1)
+
+
+def _system(entry: str, overrides: dict | None):
+    observer, system, _ = load_observer(f"zoo:{entry}")
+    if overrides:
+        system = MismatchedRigidBody(**{**system.config(), **overrides})
+    return observer, system
+
+
+def _sim(system, n: int, length: int, sigma: float, seed: int):
+    return system.simulate(n, length, sigma, torch.Generator().manual_seed(seed))
+
+
+def _fit(observer, system, args) -> tuple[CovarianceReadout, list[dict]]:
+    train = Sequences.cat([
+        readout_sequences(observer, _sim(system, args.train, args.length, s, 1000 + i), skip=SKIP)
+        for i, s in enumerate(args.sigmas)
+    ])
+    val = Sequences.cat([
+        readout_sequences(
+            observer, _sim(system, max(2, args.train // 4), args.length, s, 2000 + i), skip=SKIP
+        )
+        for i, s in enumerate(args.sigmas)
+    ])
+    width = input_width(observer, "residual")
+    readout = CovarianceReadout(observer.group, width, "factor", memory=args.memory)
+    history = fit_covariance(readout, train, val, epochs=args.epochs, lr=args.lr, batch_size=4)
+    return readout, history
+
+
+def _row(group, est, cov, states) -> dict:
+    xi = tangent_errors(group, est[:, SKIP:], states[:, SKIP:])
+    out = calibration(group, xi, cov[:, SKIP:])
+    return {name: {k: round(v, 4) for k, v in c.row().items()} for name, c in out.items()}
+
+
+def _figure(path: Path, group, data, learned, ekf, sigma: float) -> None:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(10, 6))
+    FigureCanvasAgg(fig)
+    t = torch.arange(data.length + 1)[SKIP:].numpy()
+    for row, name in enumerate(("R", "p")):
+        s = group.tangent_slice(name)
+        for col, (label, (est, cov)) in enumerate((("learned", learned), ("EKF", ekf))):
+            ax = fig.add_subplot(2, 2, 2 * row + col + 1)
+            xi = tangent_errors(group, est[0, SKIP:], data.states[0, SKIP:])[:, s]
+            sd = torch.diagonal(cov[0, SKIP:, s, s], dim1=-2, dim2=-1).sqrt()
+            for j in range(xi.shape[-1]):
+                ax.plot(t, xi[:, j].numpy(), lw=0.7, label=f"{name}[{j}]")
+                ax.fill_between(t, -3 * sd[:, j].numpy(), 3 * sd[:, j].numpy(), alpha=0.12)
+            ax.set_title(f"{label}: {name} error and its +-3 sigma band (sigma {sigma:g})")
+            ax.set_xlabel("step k")
+            ax.set_ylabel("rad" if name == "R" else "m")
+            ax.legend(fontsize=7, loc="upper right")
+    fig.tight_layout()
+    with atomic_open(path, "wb") as f:
+        fig.savefig(f, format="png", dpi=110)
+
+
+def _table(results: dict) -> str:
+    lines = ["# Calibration of the learned observer's covariance and the nominal EKF's", ""]
+    for case, per_sigma in results["cases"].items():
+        lines += [f"## {case}", "", "| sigma | estimator | " + " | ".join(
+            f"{f} ANEES | {f} in band | {f} in 3 sigma" for f in ("R", "p")) + " |",
+            "|" + " --- |" * 8]
+        for sigma, rows in per_sigma.items():
+            for est_name in ("learned", "ekf"):
+                r = rows[est_name]
+                cells = [
+                    f"{r[f]['anees']:.3f} | {100 * r[f]['in_band']:.0f} % | {100 * r[f]['in_3sigma']:.1f} %"
+                    for f in ("R", "p")
+                ]
+                lines.append(f"| {sigma} | {est_name} | " + " | ".join(cells) + " |")
+        lines.append("")
+    lines += ["Command: `" + results["command"] + "`", ""]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", required=True, help="the folder the tables, figures and readouts go to")
+    p.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    p.add_argument("--sigmas", nargs="+", type=float, default=list(SIGMAS))
+    p.add_argument("--train", type=int, default=40, help="training sequences per noise level")
+    p.add_argument("--eval", type=int, default=100, help="evaluation sequences per noise level")
+    p.add_argument("--length", type=int, default=300, help="steps per sequence")
+    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--lr", type=float, default=3e-3)
+    p.add_argument("--memory", type=int, default=32)
+    p.add_argument("--threads", type=int, default=None)
+    args = p.parse_args(argv)
+    use_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results = {"command": "python -m manifold_nets_examples.rigid_body.calibration "
+               + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+               "cases": {}, "history": {}}
+    readouts = {}
+    for case in args.cases:
+        entry, overrides, readout_case = CASES[case]
+        observer, system = _system(entry, overrides)
+        if readout_case not in readouts:
+            fit_obs, fit_sys = _system(*CASES[readout_case][:2])
+            readouts[readout_case], results["history"][readout_case] = _fit(fit_obs, fit_sys, args)
+            save_readout(
+                out / f"{readout_case}_covariance.pt", readouts[readout_case], f"zoo:{entry}"
+            )
+        cal = CalibratedObserver(observer, readouts[readout_case]).eval()
+        results["cases"][case] = {}
+        for sigma in args.sigmas:
+            data = _sim(system, args.eval, args.length, sigma, 7)
+            with torch.no_grad():
+                learned = cal(data.measurements)
+                ekf = ekf_with_covariance(system, sigma, data)
+            results["cases"][case][str(sigma)] = {
+                "learned": _row(system.group, *learned, data.states),
+                "ekf": _row(system.group, *ekf, data.states),
+            }
+            if sigma == 0.3:
+                _figure(out / f"calibration_{case}.png", system.group, data, learned, ekf, sigma)
+            print(case, sigma, json.dumps(results["cases"][case][str(sigma)]))
+        write_text_atomic(out / "calibration.json", json.dumps(results, indent=1))
+        write_text_atomic(out / "calibration.md", _table(results))
+    print(f"-> {out / 'calibration.md'}")
+
+
+if __name__ == "__main__":
+    main()
