@@ -273,8 +273,8 @@ class MethodConfig:
     target: Optional[str] = None
     #: Keyword arguments of the estimator factory (e.g. ``{init_steps: 0}`` for the rigid body's EKF).
     params: dict[str, Any] = field(default_factory=dict)
-    #: The label of its rows in tables and comparisons (default: ``name``; for ``learned``, the
-    #: experiment's ``name``, so that observers of different experiments stay apart).
+    #: The label of its rows in tables and comparisons (default: ``name``; in a comparison a
+    #: ``learned`` observer is named by its experiment, so that two experiments stay apart).
     label: Optional[str] = None
 
 

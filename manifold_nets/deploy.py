@@ -30,8 +30,14 @@ contiguous before use).
 
 from __future__ import annotations
 
+import contextlib
+import io
 import json
+import logging
 import os
+import sys
+import warnings
+from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -201,12 +207,37 @@ def export_onnx(observer: ResidualObserver, path: str | os.PathLike, batch: int 
     step = OnlineStep(observer).eval()
     names = _meta(step, batch)["inputs"]
     outputs = ["x_next"] + [f"{name}_next" for name in step.state_names()]
-    with torch.no_grad():
-        program = torch.onnx.export(
-            step, step.example_inputs(batch), dynamo=True, input_names=names,
-            output_names=outputs, verbose=False,
-        )
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    program.save(str(path))
+    with torch.no_grad(), _quiet_exporter():
+        program = torch.onnx.export(
+            step, step.example_inputs(batch), dynamo=True, input_names=names,
+            output_names=outputs, verbose=False, report=False,
+        )
+        program.save(str(path))
     return path
+
+
+@contextlib.contextmanager
+def _quiet_exporter() -> Iterator[None]:
+    """Silences what ``torch.onnx.export``, onnxscript and onnx_ir say while they work: that
+    torchvision's operators are skipped, torch's own deprecation warnings, and, in a program
+    that logs at INFO, some 450 lines of their optimisation passes (a line per initializer
+    deduplicated or folded). The export's result is the file, or an exception; what they
+    printed is written to stderr when it fails."""
+    loggers = [logging.getLogger(name) for name in ("torch.onnx", "onnxscript", "onnx_ir")]
+    levels = [logger.level for logger in loggers]
+    printed = io.StringIO()
+    try:
+        for logger in loggers:
+            logger.setLevel(logging.ERROR)
+        with warnings.catch_warnings(), contextlib.redirect_stdout(printed):
+            warnings.simplefilter("ignore", FutureWarning)
+            warnings.simplefilter("ignore", DeprecationWarning)
+            yield
+    except Exception:
+        sys.stderr.write(printed.getvalue())
+        raise
+    finally:
+        for logger, level in zip(loggers, levels):
+            logger.setLevel(level)

@@ -3,7 +3,8 @@
 * :func:`write_table` / :func:`markdown_table`: rows (dicts) as CSV (full precision) and
   Markdown (rounded for reading);
 * :func:`plot_errors`: the paper's figure for one evaluation (mean error against the step per
-  factor, estimate and measurement, and the distance from the group on a log scale);
+  factor, estimate and measurement, and the distance from the group on a log scale), each axis
+  naming its norm (:func:`metric_label`: ``||R_est - R|| (Frobenius)`` for a rotation matrix);
 * :func:`plot_comparison` and :func:`plot_vs_sigma`: several methods against the step, or
   against the noise level.
 
@@ -22,7 +23,10 @@ import torch
 
 from .atomic import atomic_open, write_text_atomic
 
-__all__ = ["markdown_table", "write_table", "plot_errors", "plot_comparison", "plot_vs_sigma"]
+__all__ = [
+    "markdown_table", "write_table", "metric_label", "plot_errors", "plot_comparison",
+    "plot_vs_sigma",
+]
 
 _NOT_METRICS = {"sigma", "method", "sequences", "steps", "seconds"}
 
@@ -70,51 +74,61 @@ def write_table(
     return csv_path, md_path
 
 
-def plot_errors(result, path: str | Path, title: str | None = None) -> Path:
-    """The paper's figure: mean error against the step per factor (estimate and measurement) and
-    the distance of the estimate from the group (log scale), from step ``skip`` on."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
+def metric_label(name: str, group=None) -> str:
+    """The y-axis label of metric ``name``: the norm it is.
 
+    A factor of ``group`` (a name of ``group.factor_names``) is measured by the default
+    ``System.metrics``, ``||pi_f(xhat) - pi_f(x)||``: the Frobenius norm of the difference for a
+    matrix element (a rotation ``R``), the vector norm for a flat vector element, the norm of
+    the embeddings' difference otherwise. Any other name (a system's own metric, named with its
+    unit, such as ``attitude_deg``) is shown as it is.
+    """
+    if group is None or name not in group.factor_names:
+        return f"mean {name}"
+    factor = group.factor(name)
+    if len(factor.element_shape) == 2:
+        return f"mean ||{name}_est - {name}|| (Frobenius)"
+    if factor.embedding_is_flat:
+        return f"mean ||{name}_est - {name}||"
+    return f"mean ||pi({name}_est) - pi({name})||"
+
+
+def plot_errors(result, path: str | Path, title: str | None = None, group=None) -> Path:
+    """The paper's figure: mean error against the step per factor (estimate and measurement) and
+    the distance of the estimate from the group (log scale), from step ``skip`` on. ``group``
+    (the system's) names each factor's norm on its axis (:func:`metric_label`)."""
     names = [k[: -len(" est")] for k in result.curves if k.endswith(" est")]
-    panels = names + ["membership"]
-    cols = 2 if len(panels) > 1 else 1
-    rows = math.ceil(len(panels) / cols)
-    fig = Figure(figsize=(5.0 * cols, 3.0 * rows), layout="constrained")
-    FigureCanvasAgg(fig)
+    fig, axes = _panels(len(names) + 1, height=3.0)
     start = result.skip
-    for i, name in enumerate(panels):
-        ax = fig.add_subplot(rows, cols, i + 1)
-        if name == "membership":
-            c = result.curves["membership"][start:].clamp_min(1e-300)
-            k = torch.arange(start, start + len(c))
-            ax.semilogy(k, c, color="C2", label="estimate")
-            ax.set_title("distance of the estimate from the group")
-            ax.set_ylabel("membership error")
-        else:
-            est = result.curves[f"{name} est"][start:]
-            k = torch.arange(start, start + len(est))
-            if f"{name} meas" in result.curves:
-                ax.plot(
-                    k,
-                    result.curves[f"{name} meas"][start:],
-                    color="C1",
-                    lw=0.8,
-                    label="measurement",
-                )
-            ax.plot(k, est, color="C0", lw=1.0, label="estimate")
-            ax.set_title(f"error in {name}")
-            ax.set_ylabel("mean error")
-            ax.set_ylim(bottom=0)
+    for name, ax in zip(names, axes):
+        est = result.curves[f"{name} est"][start:]
+        k = torch.arange(start, start + len(est))
+        lines = [est]
+        if f"{name} meas" in result.curves:
+            lines.insert(0, result.curves[f"{name} meas"][start:])
+            ax.plot(k, lines[0], color="C1", lw=0.8, label="measurement")
+        ax.plot(k, est, color="C0", lw=1.0, label="estimate")
+        ax.set_title(f"error in {name}")
+        ax.set_ylabel(metric_label(name, group))
+        top = float(torch.cat(lines).double().nan_to_num(0.0, 0.0, 0.0).max())
+        ax.set_ylim(0, 1.08 * top if top > 0 else None)  # a flat line stays inside the frame
+    ax = axes[-1]
+    c = result.curves["membership"][start:]
+    k = torch.arange(start, start + len(c))
+    ax.set_title("distance of the estimate from the group")
+    ax.set_ylabel("membership error")
+    if bool((c == 0).all()):  # exactly on the group: nothing to draw on a log scale
+        ax.plot(k, c, color="C2", label="estimate")
+        ax.text(0.5, 0.5, "0 at every step", transform=ax.transAxes, ha="center")
+    else:
+        ax.semilogy(k, c.clamp_min(1e-300), color="C2", label="estimate")
+    for ax in axes:
         ax.set_xlabel("step k")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     if title:
         fig.suptitle(title)
-    path = Path(path)
-    with atomic_open(path, "wb") as f:
-        fig.savefig(f, format=path.suffix.lstrip(".") or "png", dpi=110)
-    return path
+    return _save(fig, path)
 
 
 def plot_vs_sigma(rows: Sequence[dict], path: str | Path, title: str | None = None) -> Path:
@@ -141,7 +155,8 @@ def plot_vs_sigma(rows: Sequence[dict], path: str | Path, title: str | None = No
         ax.set_xlabel("sigma")
         ax.set_ylabel("mean error" if not metric.startswith("membership") else "distance")
         ax.grid(alpha=0.3, which="both")
-        ax.legend(fontsize=7)
+        if ax.get_lines():  # a metric no method has a value of: an empty panel, no legend
+            ax.legend(fontsize=7)
     if title:
         fig.suptitle(title)
     return _save(fig, path)
@@ -198,7 +213,8 @@ def plot_comparison(
 
 
 def _panels(n: int, height: float):
-    """A figure (Agg canvas, no display) with ``n`` panels in two columns, and the axes."""
+    """A figure (Agg canvas, no display) with ``n`` panels in two columns, and the axes; with
+    an odd ``n`` the last panel spans the last row, so that no panel is left empty."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -206,12 +222,14 @@ def _panels(n: int, height: float):
     nrows = math.ceil(n / cols)
     fig = Figure(figsize=(5.0 * cols, height * nrows), layout="constrained")
     FigureCanvasAgg(fig)
-    return fig, [fig.add_subplot(nrows, cols, i + 1) for i in range(n)]
+    axes = [fig.add_subplot(nrows, cols, i + 1) for i in range(n - 1)]
+    last = (n, nrows * cols) if n % cols else n  # (first, last) cell: the whole last row
+    return fig, [*axes, fig.add_subplot(nrows, cols, last)]
 
 
 def _save(fig, path: str | Path) -> Path:
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     with atomic_open(path, "wb") as f:
-        fig.savefig(f, format="png", dpi=110)
+        fig.savefig(f, format=path.suffix.lstrip(".") or "png", dpi=110)
     return path

@@ -7,7 +7,9 @@ sigma) and ``results/curves.json`` (mean error against the step), whatever its `
   the job's overrides, and their mean and standard deviation over seeds;
 * :func:`collect_runs`, :func:`comparison_rows` and :func:`step_curves`: runs of several
   methods (the learned observer, ablations, baselines, filters) as one table per sigma with
-  ``<method> / <reference>`` error ratios, and their per-step curves.
+  ``<method> / <reference>`` error ratios, and their per-step curves. A run's table says its
+  method (``learned``, ``ekf``, ...); a comparison names a trained observer by its experiment
+  (``paper_cpu``, the ``label`` of its ``metrics.json``), so that two experiments stay apart.
 
 The commands ``manifold_nets.cli.sweep`` and ``manifold_nets.cli.compare`` write them out.
 """
@@ -131,13 +133,21 @@ def collect_runs(paths: Sequence[str | Path]) -> list[dict]:
 
 
 def _label(run: dict) -> str:
-    return run.get("label") or str(run["metrics"].get("method") or "learned")
+    return run.get("label") or _run_label(run["metrics"])
+
+
+def _run_label(metrics: dict) -> str:
+    """What a run is called in a comparison: the ``label`` its ``metrics.json`` records (a
+    trained observer's experiment, ``paper_cpu``; a baseline's method, ``ekf``), else its
+    ``method``."""
+    return str(metrics.get("label") or metrics.get("method") or "learned")
 
 
 def _name_runs(runs: list[dict]) -> list[dict]:
-    """Gives each run a distinct ``label``: its method, with `` seed <s>`` added where runs of
-    one method differ in seed (a seed sweep), and `` #<i>`` where even that repeats."""
-    base = [str(r["metrics"].get("method") or "learned") for r in runs]
+    """Gives each run a distinct ``label``: its :func:`_run_label`, with `` seed <s>`` added
+    where runs of one label differ in seed (a seed sweep), and `` #<i>`` where even that
+    repeats."""
+    base = [_run_label(r["metrics"]) for r in runs]
     labels = list(base)
     for i, run in enumerate(runs):
         if base.count(base[i]) > 1 and "seed" in run["metrics"]:

@@ -381,8 +381,8 @@ def test_a_checkpoint_with_nan_weights_fails_the_evaluation_and_writes_no_result
     assert not (tmp_path / "ev" / "results" / "metrics.json").exists()  # was: NaN rows, exit 0
 
 
-def test_the_command_refuses_a_negative_grad_clip_and_says_where_its_folder_is(tmp_path):
-    out_dir = tmp_path / "out"
+def test_the_command_refuses_a_negative_grad_clip_and_leaves_no_run_folder(tmp_path):
+    out_dir = tmp_path / "outputs" / "run"
     cmd = [sys.executable, "-m", "manifold_nets.cli.train", *_tiny(tmp_path / "data"),
            "train.grad_clip=-1", f"hydra.run.dir={out_dir}"]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
@@ -391,10 +391,11 @@ def test_the_command_refuses_a_negative_grad_clip_and_says_where_its_folder_is(t
     )
     assert out.returncode != 0  # was: exit 0, epoch 0 as the best
     assert "train.grad_clip must be > 0 or None (null: no clipping), got -1.0" in out.stderr
-    assert f"the run failed; its folder (hydra's files, and what the run wrote): {out_dir}" in (
+    assert f"the run failed before any work; its folder {out_dir} is removed" in (
         out.stdout + out.stderr
     )
-    assert sorted(p.name for p in out_dir.iterdir()) == [".hydra", "train.log"]  # hydra's own
+    # hydra had made it (.hydra/, train.log): removed, with outputs/ that it left empty
+    assert not (tmp_path / "outputs").exists()
 
 
 def test_a_typoed_eval_checkpoint_is_refused_before_the_run_folder_gets_a_file(tmp_path):
@@ -410,8 +411,7 @@ def test_a_typoed_eval_checkpoint_is_refused_before_the_run_folder_gets_a_file(t
     )
     assert out.returncode != 0
     assert f"no checkpoint at {typo}; train first or fix the path." in out.stderr
-    left = sorted(p.name for p in out_dir.iterdir())
-    assert left == [".hydra", "evaluate.log"], left  # hydra's own files only
+    assert not out_dir.exists()  # hydra had made it (.hydra/, evaluate.log): removed
     # a run folder without best.pt is refused the same way
     with pytest.raises(CheckpointError, match=r"^no best\.pt in the run folder"):
         run(_compose(*_tiny(tmp_path / "data", f"eval.checkpoint={tmp_path}")), tmp_path / "ev")

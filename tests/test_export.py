@@ -149,11 +149,21 @@ _HAS_ORT = importlib.util.find_spec("onnxruntime") is not None
 
 
 @pytest.mark.skipif(not _HAS_ONNX, reason="ONNX export needs onnx and onnxscript (extra 'export')")
-def test_the_float64_state_step_exports_to_a_valid_onnx_model(tmp_path):
+def test_the_float64_state_step_exports_to_a_valid_onnx_model(tmp_path, capfd, caplog):
+    import logging
+    import warnings
+
     import onnx
 
     obs, _ = _rigid_body_observer()
-    path = export_onnx(obs, tmp_path / "step.onnx")
+    caplog.set_level(logging.INFO)  # a program that logs at INFO (hydra's commands do)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        path = export_onnx(obs, tmp_path / "step.onnx")
+    # quiet: no line of the exporter's passes (one per initializer), of torch's registry
+    # (torchvision's skipped operators), no warning
+    assert [r.getMessage() for r in caplog.records] == []
+    assert capfd.readouterr() == ("", "") and [str(w.message) for w in caught] == []
     model = onnx.load(str(path))
     onnx.checker.check_model(model)
     assert [i.name for i in model.graph.input] == ["x", "hidden0", "hidden1", "y"]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -259,10 +260,16 @@ def test_no_experiment_pins_a_label_that_would_mislabel_other_methods(experiment
     assert cfg.method.label is None and cfg.method.name == "ekf"
 
 
-def test_a_trained_observer_is_labelled_by_its_experiment(tmp_path):
+def test_a_trained_observers_rows_say_learned_and_a_comparison_names_its_experiment(tmp_path):
     cfg = _compose(*_tiny(tmp_path / "data", "eval.plots=false", "name=tiny_exp"))
     metrics = run(cfg, tmp_path / "run")
-    assert metrics["method"] == "tiny_exp" and metrics["table"][0]["method"] == "tiny_exp"
+    assert metrics["method"] == "learned" and metrics["table"][0]["method"] == "learned"
+    with (tmp_path / "run" / "results" / "table.csv").open() as f:
+        assert next(csv.DictReader(f))["method"] == "learned"
+    assert metrics["label"] == "tiny_exp"  # what the comparison calls it
+    _fake_run(tmp_path / "other", "ekf", [0.1], 1.0, size=(4, 16))  # no label: its method
+    rows = results.comparison_rows(results.collect_runs([tmp_path / "run", tmp_path / "other"]))
+    assert [r["method"] for r in rows] == ["measurement", "tiny_exp", "ekf", "tiny_exp / ekf"]
 
 
 def test_horizon_table_gives_the_error_at_chosen_steps_and_its_growth(tmp_path):

@@ -3,8 +3,9 @@
 The repository's ``examples/`` and ``configs/`` folders are installed as ``manifold_nets_examples``
 and ``manifold_nets_configs`` (``package-dir``); ``packages`` is listed by hand, so a new package
 folder or config group left out of it would silently be missing from the wheel. Read from the
-files, nothing is built (the user's view, from a built wheel: ``tests/test_own_project.py`` and
-the commands in ``docs/your_own_project.md``).
+files, nothing is built (the user's view: ``tests/test_own_project.py`` runs the session of
+``docs/your_own_project.md`` outside the checkout; ``docs/examples/own_project.py`` runs it from a
+freshly built wheel in a new virtual environment).
 """
 
 from __future__ import annotations
@@ -79,3 +80,16 @@ def test_torch_is_a_range_not_a_pin():
     """An exact pin breaks every environment that has another torch."""
     (torch,) = [d for d in PYPROJECT["project"]["dependencies"] if d.startswith("torch")]
     assert "==" not in torch and ">=" in torch and "<" in torch, torch
+
+
+def test_the_extras_a_users_project_installs_bring_what_it_uses():
+    """docs/your_own_project.md installs the wheel with ``[testing,export]``: hypothesis for
+    ``groups.testing`` (the axiom suite of a group of one's own), onnx, onnxscript and
+    onnxruntime for ``export_onnx``."""
+    page = (ROOT / "docs" / "your_own_project.md").read_text()
+    assert "manifold_nets-0.1.0-py3-none-any.whl[testing,export]" in page
+    assert PYPROJECT["project"]["version"] == "0.1.0"  # the wheel's name the page gives
+    extras = PYPROJECT["project"]["optional-dependencies"]
+    names = {k: {d.split(">")[0].split("=")[0] for d in v} for k, v in extras.items()}
+    assert names["testing"] == {"hypothesis"}
+    assert names["export"] == {"onnx", "onnxscript", "onnxruntime"}

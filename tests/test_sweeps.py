@@ -8,6 +8,7 @@ plugin is not installed is skipped, naming the extra.
 from __future__ import annotations
 
 import importlib.util
+import json
 import math
 import os
 import subprocess
@@ -17,7 +18,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from manifold_nets.cli import sweep
+from manifold_nets.cli import common, sweep
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -81,3 +82,47 @@ def test_a_slurm_sweep_through_submitit_on_its_local_executor(tmp_path):
     assert len(_jobs(tmp_path)) == 2
     assert list((tmp_path / "sweep" / ".submitit").iterdir())  # submitit's job folders
     assert sweep.main([str(tmp_path / "sweep")]) == 0
+
+
+def test_a_launcher_whose_plugin_is_missing_names_the_extra(tmp_path):
+    """hydra's own error ("Could not find 'hydra/launcher/joblib'") names no package: the
+    command stops first, naming the plugin and the extra, and makes no folder."""
+    hide = (
+        "import importlib.util as u, sys\n"
+        "find = u.find_spec\n"
+        "u.find_spec = lambda name, *a: None if name.startswith('hydra_plugins') else find(name, *a)\n"
+        "sys.argv = ['mn-train', '-m', 'hydra/launcher=joblib', 'experiment=default', 'seed=0,1']\n"
+        "from manifold_nets.cli.train import main\n"
+        "main()\n"
+    )  # fmt: skip
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", hide], cwd=tmp_path, env=env, capture_output=True,
+                         text=True, timeout=120, check=False)  # fmt: skip
+    assert out.returncode == 1, out.stderr
+    assert out.stderr.strip() == (
+        "error: hydra/launcher=joblib needs hydra's plugin hydra-joblib-launcher, which is not "
+        "installed; it comes with the `sweeps` extra: pip install 'manifold_nets[sweeps]' "
+        "(docs/sweeps.md)."
+    )
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_the_plugin_check_reads_every_way_of_naming_a_plugin(monkeypatch):
+    monkeypatch.setattr(common.importlib.util, "find_spec", lambda name: None)
+    for arg in ("hydra/launcher=submitit_slurm", "hydra/sweeper=optuna", "+hydra/launcher=joblib"):
+        with pytest.raises(SystemExit, match="the `sweeps` extra"):
+            common.check_plugins(["-m", arg, "experiment=default"])
+    common.check_plugins(["-m", "hydra/launcher=basic", "seed=0,1"])  # hydra's own: no plugin
+
+
+def test_the_sweep_command_names_every_file_it_wrote(tmp_path, capsys):
+    for seed in (0, 1):
+        res = tmp_path / str(seed) / "results"
+        res.mkdir(parents=True)
+        table = [{"sigma": 0.1, "method": "learned", "R est": 0.1 + seed, "sequences": 2}]
+        (res / "metrics.json").write_text(json.dumps({"seed": seed, "table": table}))
+    assert sweep.main([str(tmp_path)]) == 0
+    wrote = capsys.readouterr().out.splitlines()[-1]
+    names = ("sweep.csv", "sweep.md", "sweep_summary.csv", "sweep_summary.md")
+    assert wrote == "wrote " + ", ".join(str(tmp_path / n) for n in names)
+    assert all((tmp_path / n).is_file() for n in names)

@@ -1,11 +1,14 @@
 """What the commands share: paths from the launch folder, JSON, the checks of a config that need
-no work, and what a sweeper reads."""
+no work (hydra's plugins among them), what a sweeper reads, and the run folder of a failed run."""
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import logging
 import math
+import shutil
+import sys
 from collections.abc import Sequence
 from contextlib import contextmanager
 from pathlib import Path
@@ -17,8 +20,8 @@ from manifold_nets.config import RunConfig
 from manifold_nets.objective import parse_objective
 
 __all__ = [
-    "absolute", "check_config", "check_sigmas", "json_safe", "say_where_on_failure",
-    "sweeper_reads_the_objective", "to_json",
+    "HYDRA_PLUGINS", "absolute", "check_config", "check_plugins", "check_sigmas", "json_safe",
+    "say_where_on_failure", "sweeper_reads_the_objective", "to_json",
 ]
 
 log = logging.getLogger(__name__)
@@ -106,12 +109,75 @@ def sweeper_reads_the_objective(cfg: DictConfig) -> bool:
     return hc.mode == RunMode.MULTIRUN and not target.endswith(".BasicSweeper")
 
 
+#: ``hydra/<group>=<option>`` -> the module of hydra's plugin that provides it. All three are the
+#: ``sweeps`` extra (docs/sweeps.md).
+HYDRA_PLUGINS = {
+    "hydra/launcher=joblib": "hydra_plugins.hydra_joblib_launcher",
+    "hydra/launcher=submitit_local": "hydra_plugins.hydra_submitit_launcher",
+    "hydra/launcher=submitit_slurm": "hydra_plugins.hydra_submitit_launcher",
+    "hydra/sweeper=optuna": "hydra_plugins.hydra_optuna_sweeper",
+}
+
+
+def check_plugins(argv: Sequence[str]) -> None:
+    """Exits (status 1) naming the extra when a command-line argument picks a launcher or
+    sweeper whose hydra plugin is not installed; hydra's own error ("Could not find
+    'hydra/launcher/joblib'") does not say what to install."""
+    for arg in argv:
+        module = HYDRA_PLUGINS.get(arg.lstrip("+~").replace("override ", "").strip())
+        if module is not None and importlib.util.find_spec(module) is None:
+            name = module.removeprefix("hydra_plugins.").replace("_", "-")
+            sys.exit(
+                f"error: {arg} needs hydra's plugin {name}, which is not installed; it comes "
+                "with the `sweeps` extra: pip install 'manifold_nets[sweeps]' (docs/sweeps.md)."
+            )
+
+
+def _only_hydras_files(out_dir: Path) -> bool:
+    """Whether ``out_dir`` holds nothing but what hydra writes before a job starts: its
+    ``.hydra/`` folder (``hydra.output_subdir``) and the job's log."""
+    from hydra.core.hydra_config import HydraConfig
+
+    hc = HydraConfig.get()
+    hydras = {str(hc.output_subdir), f"{hc.job.name}.log"}
+    return out_dir.is_dir() and all(p.name in hydras for p in out_dir.iterdir())
+
+
+def _remove_run_folder(out_dir: Path) -> None:
+    """Removes ``out_dir`` (the log handlers writing into it closed first), and the folders
+    above it that this leaves empty, up to the launch folder (``outputs/<name>/``, ``outputs/``)."""
+    from hydra.core.hydra_config import HydraConfig
+
+    for logger in (logging.getLogger(), *logging.Logger.manager.loggerDict.values()):
+        for handler in list(getattr(logger, "handlers", ())):
+            name = getattr(handler, "baseFilename", None)
+            if name is not None and out_dir in Path(name).parents:
+                logger.removeHandler(handler)
+                handler.close()
+    shutil.rmtree(out_dir, ignore_errors=True)
+    launch = Path(HydraConfig.get().runtime.cwd).resolve()
+    for parent in out_dir.resolve().parents:
+        if parent == launch or launch not in parent.parents:
+            break
+        try:
+            parent.rmdir()  # only when empty: another run's folder keeps it
+        except OSError:
+            break
+
+
 @contextmanager
 def say_where_on_failure(out_dir: str | Path):
-    """Logs the run folder when the run fails: hydra made it (its ``.hydra/`` and log) before
-    the run could check anything, so a refused run leaves it behind; this says where."""
+    """What a failed run leaves: hydra made its folder (``.hydra/`` and the log) before the run
+    could check anything. A run that fails before it wrote a file of its own (a refused config,
+    path or checkpoint: before any work) has its folder removed; otherwise the folder is kept
+    and its path logged."""
     try:
         yield
     except Exception:
-        log.error("the run failed; its folder (hydra's files, and what the run wrote): %s", out_dir)
+        out_dir = Path(out_dir)
+        if _only_hydras_files(out_dir):
+            _remove_run_folder(out_dir)
+            log.info("the run failed before any work; its folder %s is removed", out_dir)
+        else:
+            log.error("the run failed; its folder (what it wrote, and hydra's files): %s", out_dir)
         raise

@@ -5,8 +5,9 @@ ablation, a baseline, a classical filter), writes the same ``results/metrics.jso
 sigma) and ``results/curves.json`` (mean error against the step). This command reads any number
 of run folders (or folders holding many, such as a multirun) and writes into ``--out``:
 
-* ``comparison.csv`` / ``comparison.md``: per sigma, one row per method (mean errors of every
-  metric over the steps ``k >= skip``, the distance from the group, wall time per
+* ``comparison.csv`` / ``comparison.md``: per sigma, one row per method (a baseline by its
+  method, ``ekf``; a trained observer by its experiment, ``paper_cpu``, where its own table says
+  ``learned``; mean errors of every metric over the steps ``k >= skip``, the distance from the group, wall time per
   sequence-step), and rows ``<method> / <reference>`` with the ratio of each trained observer's
   errors to the reference method's (``--reference``, default ``ekf``; below 1: better);
 * ``comparison_vs_sigma.png``: each metric against sigma, one line per method (log scale);

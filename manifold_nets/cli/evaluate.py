@@ -19,7 +19,7 @@ from omegaconf import DictConfig
 
 from . import CONFIG_PATH
 from .common import absolute, check_sigmas, json_safe, say_where_on_failure, to_json
-from .common import sweeper_reads_the_objective
+from .common import check_plugins, sweeper_reads_the_objective
 from .tasks import evaluate, run
 
 __all__ = ["absolute", "check_sigmas", "evaluate", "json_safe", "main", "run", "to_json"]
@@ -43,8 +43,11 @@ def _hydra_main(cfg: DictConfig) -> float | None:
 
 def main() -> None:
     """The command-line entry (configs from the package ``manifold_nets_configs``, primary config ``train.yaml``)."""
+    import sys
+
     import hydra
 
+    check_plugins(sys.argv[1:])
     hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")(_hydra_main)()
 
 

@@ -42,13 +42,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"error: {err}", file=sys.stderr)
         return 1
     root = Path(args.folder)
-    write_table(rows, root / "sweep", title=f"sweep {root}")
+    written = write_table(rows, root / "sweep", title=f"sweep {root}")
     print(markdown_table(rows))
     if len({r.get("seed") for r in rows}) > 1:
         summary = summarize(rows)
-        write_table(summary, root / "sweep_summary", title=f"sweep {root}: mean and std over seeds")
+        title = f"sweep {root}: mean and std over seeds"
+        written += write_table(summary, root / "sweep_summary", title=title)
         print(markdown_table(summary))
-    print(f"wrote {root / 'sweep.csv'} and {root / 'sweep.md'}")
+    print("wrote " + ", ".join(map(str, written)))
     return 0
 
 

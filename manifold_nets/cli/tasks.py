@@ -332,7 +332,7 @@ def _train_and_evaluate(
 
 def _estimator(cfg: DictConfig, system, model: ResidualObserver | None, metrics: dict):
     """A function ``sigma -> Estimator`` for the run's method (checked before any work)."""
-    label = metrics["method"]
+    label = metrics["label"]  # the experiment's name, for a trained observer
     if model is not None:
         if cfg.eval.checkpoint:
             path, ckpt = load_weights(model, absolute(cfg.eval.checkpoint), model.device)
@@ -371,18 +371,21 @@ def evaluate(
     """
     out_dir, res_dir = Path(out_dir), Path(out_dir) / "results"
     meth = cfg.method
-    # rows are labelled by method; a trained observer by its experiment (paper_cpu, ...)
-    label = meth.label or (cfg.name if meth.name == "learned" and not meth.target else meth.name)
+    # the rows say the method (learned, ekf, ...); the comparison command labels a trained
+    # observer by its experiment (paper_cpu, ...), so that observers of two experiments stay apart
+    method = meth.label or meth.name
+    learned = meth.name == "learned" and not meth.target
     metrics: dict[str, Any] = {
         "name": cfg.name,
-        "method": label,
+        "method": method,
+        "label": meth.label or (cfg.name if learned else meth.name),
         "seed": int(cfg.seed),
         "skip_steps": int(cfg.eval.skip_steps),
         "out_dir": str(out_dir),
         **(info or {}),
     }
     estimator = _estimator(cfg, system, model, metrics)
-    what = cfg.name if label == cfg.name else f"{cfg.name}, method {label}"
+    what = cfg.name if learned and not meth.label else f"{cfg.name}, method {method}"
     dataset = OmegaConf.to_object(cfg.dataset)
     rows, curves, reference_rows = [], {}, []
     for name in cfg.eval.baselines:
@@ -394,7 +397,7 @@ def evaluate(
         r = evaluate_estimator(estimator(sigma), data, system, skip=cfg.eval.skip_steps)
         r.row = {
             "sigma": sigma,
-            "method": label,
+            "method": method,
             **{k: v for k, v in r.row.items() if k != "sigma"},
             "seconds": r.seconds,
             "us/step": 1e6 * r.seconds / (len(data) * data.length),
@@ -416,7 +419,7 @@ def evaluate(
         curves[f"{sigma:g}"] = {k: v.tolist() for k, v in r.curves.items()}
         if cfg.eval.plots:
             title = f"{what}: sigma = {sigma:g}, {len(data)} x {data.length} steps"
-            plot_errors(r, res_dir / f"errors_sigma{sigma:g}.png", title=title)
+            plot_errors(r, res_dir / f"errors_sigma{sigma:g}.png", title=title, group=system.group)
         shown = {k: (float(f"{v:.4g}") if isinstance(v, float) else v) for k, v in r.row.items()}
         log.info("sigma %g: %s", sigma, shown)
     shown = sorted(rows + reference_rows, key=lambda row: row["sigma"])  # stable: method first

@@ -40,7 +40,7 @@ from __future__ import annotations
 from omegaconf import DictConfig
 
 from . import CONFIG_PATH
-from .common import say_where_on_failure, sweeper_reads_the_objective
+from .common import check_plugins, say_where_on_failure, sweeper_reads_the_objective
 from .tasks import run, train
 
 __all__ = ["main", "run", "train"]
@@ -58,8 +58,11 @@ def _hydra_main(cfg: DictConfig) -> float | None:
 
 def main() -> None:
     """The command-line entry (configs from the package ``manifold_nets_configs``, primary config ``train.yaml``)."""
+    import sys
+
     import hydra
 
+    check_plugins(sys.argv[1:])
     hydra.main(version_base="1.3", config_path=CONFIG_PATH, config_name="train")(_hydra_main)()
 
 
