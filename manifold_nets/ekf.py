@@ -39,9 +39,21 @@ All derivatives are taken at zero by autograd through the group's ``rplus``/``rm
 model, by default: reverse mode, with the ``d`` output components stacked in a leading
 dimension in front of the batch and pulled back in one ``torch.func.vjp`` (so the model must
 accept any leading batch dimensions, which the house convention asks of every function).
-``jacobians="analytic"`` uses the model's :meth:`FilterModel.process_jacobians` and
-:meth:`FilterModel.measurement_jacobians` (and :meth:`FilterModel.reset_jacobian` when it has
-one) instead: several times faster, and checked against autograd in the tests.
+``jacobians="analytic"`` asks the model instead, one call per stage of a step:
+:meth:`FilterModel.linearize_step` (``xhat^-``, ``w``, ``F``, ``G``),
+:meth:`FilterModel.linearize_measurement` (``nu``, ``H``, ``M``) and
+:meth:`FilterModel.linearize_reset` (``xhat^+``, ``J``; autograd where the model has no ``J``).
+By default these call the model's separate methods (:meth:`FilterModel.process_jacobians` and
+so on); a model overrides them to share the work of a stage (one ``exp`` for the step and its
+Jacobians). Several times faster, and checked against autograd in the tests.
+
+What a step costs (the time loop of small batches is the number of torch operations): the
+covariances ``Q``, ``R_n``, ``Q_e`` are read once per run (:meth:`ErrorStateEKF.constants`),
+one Cholesky solve gives the NIS and the gain together, and the Joseph form and the reset are
+one sandwich, ``(J A) P (J A)^T + (J K) R (J K)^T`` with ``J A = J - (J K) H``. ``P^-`` is
+symmetrised by :meth:`~ErrorStateEKF.predict` but not inside :meth:`~ErrorStateEKF.step` (the
+update reads one triangle of ``S`` and symmetrises ``P^+``). ``compile=True`` runs the step as
+one ``torch.compile`` graph. ``benchmarks/results/ekf.md`` has the measurements.
 
 The measurement is compared through ``residual`` (default: the system's
 :meth:`~manifold_nets.system.System.measurement_residual`, itself by default the plain difference
@@ -65,6 +77,8 @@ from typing import NamedTuple
 import torch
 
 from .data import TrajectoryDataset
+from .ekf_jacobians import jacobian_at_zero, lead
+from .ekf_so3 import matmul
 from .ekf_models import (
     BiasedReadingsFilterModel,
     FilterModel,
@@ -75,6 +89,7 @@ from .progress import progress
 
 __all__ = [
     "BiasedReadingsFilterModel",
+    "EKFConstants",
     "EKFState",
     "ErrorStateEKF",
     "FilterModel",
@@ -104,57 +119,79 @@ class FilterResult(NamedTuple):
     seconds: float
 
 
-def _lead(t: torch.Tensor, k: int) -> torch.Tensor:
-    """``t`` ``(*batch, ...)`` seen as ``(k, *batch, ...)`` (a view, no copy)."""
-    return t.expand(k, *t.shape)
-
-
-def _jacobian_at_zero(fn, dims, d_out: int, batch, like: torch.Tensor) -> list[torch.Tensor]:
-    """The Jacobians at 0 of ``fn(*perturbations) -> (d_out, *batch, d_out)`` in each argument.
-
-    Reverse mode with the output rows stacked in front of the batch: argument ``i`` is
-    ``(d_out, *batch, dims[i])``, copy ``j`` of the batch is pulled back along output
-    component ``j``, so one ``torch.func.vjp`` (one forward and one backward pass over
-    ``d_out`` copies of the batch) gives every row of every sequence's Jacobian. ``fn`` must
-    let copy ``j`` depend only on its own perturbation (any batched function does). On the CPU
-    this is several times faster than forward mode here (``torch.func.jvp``/``jacfwd`` go
-    through Python decompositions for some of the groups' operations).
-    Returns ``[(*batch, d_out, dims[i])]``.
-    """
-    primals = tuple(like.new_zeros(d_out, *batch, d) for d in dims)
-    _, pullback = torch.func.vjp(fn, *primals)
-    eye = torch.eye(d_out, dtype=like.dtype, device=like.device)
-    cot = eye.reshape(d_out, *(1,) * len(batch), d_out).expand(d_out, *batch, d_out)
-    return [g.movedim(0, -2) for g in pullback(cot)]
-
-
 def _symmetric(P: torch.Tensor) -> torch.Tensor:
-    return 0.5 * (P + P.transpose(-1, -2))
+    return (P + P.transpose(-1, -2)).mul_(0.5)
 
 
-def _cholesky(S: torch.Tensor) -> torch.Tensor:
-    """The Cholesky factor of the innovation covariance, or a ValueError that says why not."""
-    L, info = torch.linalg.cholesky_ex(_symmetric(S))
-    if bool((info != 0).any()):
-        raise ValueError(
-            "ErrorStateEKF: the innovation covariance S = H P H^T + M R M^T is not positive "
-            "definite (zero measurement noise, or a diverged covariance); give the model a "
-            "measurement noise > 0."
-        )
-    return L
+def _sandwich(A: torch.Tensor, B: torch.Tensor, plus: torch.Tensor | None = None) -> torch.Tensor:
+    """``A B A^T`` (``+ plus``: a temporary of the step, added to in place where the shapes
+    let, so that a large batch allocates one ``(B, n, n)`` fewer)."""
+    AB = matmul(A, B)
+    if plus is None:
+        return matmul(AB, A.transpose(-1, -2))
+    if AB.dim() == 3 and A.dim() == 3 and plus.shape == AB.shape[:-1] + A.shape[-2:-1]:
+        return plus.baddbmm_(AB, A.transpose(-1, -2))
+    return plus + matmul(AB, A.transpose(-1, -2))
+
+
+def _minus_product(C: torch.Tensor, A: torch.Tensor, B: torch.Tensor) -> torch.Tensor:
+    """``C - A B``, fused where both factors are batched (a shared ``B`` makes ``A B`` one
+    matrix product over the whole batch, faster than a batched one)."""
+    if A.dim() == 3 and B.dim() == 3:
+        return torch.baddbmm(C, A, B, alpha=-1.0)
+    return C - A @ B
+
+
+_NOT_PD = (
+    "ErrorStateEKF: the innovation covariance S = H P H^T + M R M^T is not positive definite "
+    "(zero measurement noise, or a diverged covariance); give the model a measurement noise > 0."
+)
+
+
+def _solve(S: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """``S^-1 rhs`` by Cholesky (from ``S``'s lower triangle) and whether the factorisation
+    failed: a ValueError at once in eager code; compiled, a tensor ``failed`` to check after the
+    step (a graph cannot raise)."""
+    if torch.compiler.is_compiling():
+        L, info = torch.linalg.cholesky_ex(S)
+        return torch.cholesky_solve(rhs, L), (info != 0).any()
+    try:
+        return torch.cholesky_solve(rhs, torch.linalg.cholesky(S)), None
+    except torch.linalg.LinAlgError:
+        raise ValueError(_NOT_PD) from None
+
+
+def _check_factored(failed: torch.Tensor | None) -> None:
+    if failed is not None and bool(failed):
+        raise ValueError(_NOT_PD)
+
+
+class EKFConstants(NamedTuple):
+    """What a run takes from the model once, not at every step: the covariances ``Q``
+    ``(q, q)`` or ``(B, q, q)``, ``Rn`` ``(r, r)`` or ``(B, r, r)``, ``Qe`` (or ``None``) and the
+    identity ``eye`` ``(n, n)``. From :meth:`ErrorStateEKF.constants`."""
+
+    Q: torch.Tensor
+    Rn: torch.Tensor
+    Qe: torch.Tensor | None
+    eye: torch.Tensor
 
 
 class ErrorStateEKF:
     """Error-state EKF on ``model.group``; see the module docstring for the equations.
 
     ``jacobians``: ``"autograd"`` (default; ``torch.func.vjp``) or ``"analytic"`` (the
-    model's methods). ``reset``: re-centre the covariance on the corrected estimate (the
-    ``J_r(delta)`` of a multiplicative EKF; the identity on ``R^n``). ``progress``: a bar of
-    the steps in :meth:`filter`, shown on a terminal when the run takes over two seconds.
-    ``gate``: a threshold on the NIS beyond which the update's measurement noise is inflated
-    (module docstring); ``None`` (default): no gate. ``gate_after``: :meth:`filter` leaves its
-    first ``gate_after`` steps ungated, for a filter started far off, whose first innovations
-    are large because it is (gated, it may converge too slowly and lock onto a wrong state).
+    model's :meth:`~FilterModel.linearize_step`, :meth:`~FilterModel.linearize_measurement` and
+    :meth:`~FilterModel.linearize_reset`). ``reset``: re-centre the covariance on the corrected
+    estimate (the ``J_r(delta)`` of a multiplicative EKF; the identity on ``R^n``).
+    ``progress``: a bar of the steps in :meth:`filter`, shown on a terminal when the run takes
+    over two seconds. ``gate``: a threshold on the NIS beyond which the update's measurement
+    noise is inflated (module docstring); ``None`` (default): no gate. ``gate_after``:
+    :meth:`filter` leaves its first ``gate_after`` steps ungated, for a filter started far off,
+    whose first innovations are large because it is (gated, it may converge too slowly and lock
+    onto a wrong state). ``compile``: run each step as one ``torch.compile`` graph (analytic
+    Jacobians only; a one-off compilation of tens of seconds, then fewer, fused operations per
+    step: worth it for long runs of small batches, see ``benchmarks/results/ekf.md``).
     """
 
     def __init__(
@@ -165,6 +202,7 @@ class ErrorStateEKF:
         progress: bool = True,
         gate: float | None = None,
         gate_after: int = 0,
+        compile: bool = False,
     ):
         if not isinstance(model, FilterModel):
             raise TypeError(
@@ -192,6 +230,12 @@ class ErrorStateEKF:
                 f">= 0; got {gate_after!r}."
             )
         self.gate_after = gate_after
+        if compile and jacobians != "analytic":
+            raise ValueError(
+                "compile=True compiles the analytic step; use jacobians='analytic' with it."
+            )
+        self.compile = bool(compile)
+        self._compiled = None
         self.name = "ekf"
 
     # ------------------------------------------------------------------ Jacobians
@@ -206,13 +250,13 @@ class ErrorStateEKF:
             x_pred = m.step(x, m.drive(x, y, u))
         dims = (g.tangent_dim, m.process_noise_dim)
         k = g.tangent_dim
-        xk, yk, uk, pk = (_lead(t, k) for t in (x, y, u, x_pred))
+        xk, yk, uk, pk = (lead(t, k) for t in (x, y, u, x_pred))
 
         def f(e, q):
             xe = g.rplus(xk, e)
             return g.rminus(m.step(xe, m.drive(xe, yk, uk, q)), pk)
 
-        F, G = _jacobian_at_zero(f, dims, g.tangent_dim, g.batch_shape(x), x)
+        F, G = jacobian_at_zero(f, dims, g.tangent_dim, g.batch_shape(x), x)
         return F, G
 
     def measurement_jacobians(self, x, drive, z_hat, d: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -223,12 +267,12 @@ class ErrorStateEKF:
         g, m = self.group, self.model
         dims = (g.tangent_dim, m.measurement_noise_dim)
         k = d
-        xk, wk, zk = _lead(x, k), _lead(drive, k), _lead(z_hat, k)
+        xk, wk, zk = lead(x, k), lead(drive, k), lead(z_hat, k)
 
         def h(e, r):
             return m.residual(m.measure(g.rplus(xk, e), wk, r), zk)
 
-        H, M = _jacobian_at_zero(h, dims, d, g.batch_shape(x), x)
+        H, M = jacobian_at_zero(h, dims, d, g.batch_shape(x), x)
         return H, M
 
     def reset_jacobian(self, x_minus, delta, x_plus) -> torch.Tensor:
@@ -237,9 +281,9 @@ class ErrorStateEKF:
         n = g.tangent_dim
 
         def j(e):
-            return g.rminus(g.rplus(_lead(x_minus, n), delta + e), _lead(x_plus, n))
+            return g.rminus(g.rplus(lead(x_minus, n), delta + e), lead(x_plus, n))
 
-        (J,) = _jacobian_at_zero(j, (n,), n, g.batch_shape(x_minus), x_minus)
+        (J,) = jacobian_at_zero(j, (n,), n, g.batch_shape(x_minus), x_minus)
         return J
 
     # ------------------------------------------------------------------ steps
@@ -258,71 +302,131 @@ class ErrorStateEKF:
             )
         return EKFState(x, P)
 
+    def constants(self, dtype=torch.float64, device=None) -> EKFConstants:
+        """The model's covariances and the identity, for :meth:`step` in a loop (computed
+        once: pass them to every step of a run)."""
+        m = self.model
+        eye = torch.eye(self.group.tangent_dim, dtype=dtype, device=device)
+        return EKFConstants(
+            m.process_noise_cov(dtype, device),
+            m.measurement_noise_cov(dtype, device),
+            m.state_noise_cov(dtype, device),
+            eye,
+        )
+
     def predict(
-        self, state: EKFState, y: torch.Tensor, u: torch.Tensor
+        self, state: EKFState, y: torch.Tensor, u: torch.Tensor, constants=None
     ) -> tuple[EKFState, torch.Tensor]:
         """``(xhat^-, P^-)`` and the drive ``w`` used, from ``y_{k+1}`` ``(B, l)`` and ``u_k``."""
-        m = self.model
-        x, P = state
-        w = m.drive(x, y, u)
-        x_pred = m.step(x, w)
-        if self.jacobians == "analytic":
-            F, G = m.process_jacobians(x, y, u)
-        else:
-            F, G = self.process_jacobians(x, y, u, x_pred)
-        Q = m.process_noise_cov(x.dtype, x.device)
-        P_pred = F @ P @ F.transpose(-1, -2) + G @ Q @ G.transpose(-1, -2)
-        Qe = m.state_noise_cov(x.dtype, x.device)
-        if Qe is not None:
-            P_pred = P_pred + Qe
+        (x_pred, P_pred), w = self._predict(state, y, u, constants)
         return EKFState(x_pred, _symmetric(P_pred)), w
 
+    def _predict(self, state, y, u, constants) -> tuple[EKFState, torch.Tensor]:
+        """:meth:`predict` with ``P^-`` as computed, symmetric to rounding (:meth:`step`'s: the
+        update reads one triangle of ``H P^- H^T`` and symmetrises its result)."""
+        m = self.model
+        x, P = state
+        c = constants or self.constants(x.dtype, x.device)
+        if self.jacobians == "analytic":
+            x_pred, w, F, G = m.linearize_step(x, y, u)
+        else:
+            w = m.drive(x, y, u)
+            x_pred = m.step(x, w)
+            F, G = self.process_jacobians(x, y, u, x_pred)
+        P_pred = _sandwich(F, P, _sandwich(G, c.Q))
+        if c.Qe is not None:
+            P_pred = P_pred.add_(c.Qe) if P_pred.shape == P.shape else P_pred + c.Qe
+        return EKFState(x_pred, P_pred), w
+
     def update(
-        self, state: EKFState, y: torch.Tensor, drive: torch.Tensor, gated: bool = True
+        self,
+        state: EKFState,
+        y: torch.Tensor,
+        drive: torch.Tensor,
+        gated: bool = True,
+        constants=None,
     ) -> tuple[EKFState, torch.Tensor]:
         """``(xhat^+, P^+)`` and the NIS ``(B,)`` from ``y_{k+1}`` and the step's drive;
         ``gated=False`` leaves the gate (if any) out of this update."""
+        c = constants or self.constants(state.x.dtype, state.x.device)
+        x, P, nis, failed = self._update(state, y, drive, gated, c)
+        _check_factored(failed)
+        return EKFState(x, P), nis
+
+    def _update(self, state, y, drive, gated, c):
+        """:meth:`update`'s arithmetic: ``(x^+, P^+, nis, failed)``, ``failed`` a tensor (True
+        where a Cholesky factorisation failed) in a compiled step, ``None`` in an eager one
+        (which raises at once)."""
         g, m = self.group, self.model
         x, P = state
-        z_hat = m.measure(x, drive)
-        nu = m.residual(m.observation(y), z_hat)
         if self.jacobians == "analytic":
-            H, M = m.measurement_jacobians(x, drive)
+            nu, H, M = m.linearize_measurement(x, drive, y)
         else:
+            z_hat = m.measure(x, drive)
+            nu = m.residual(m.observation(y), z_hat)
             H, M = self.measurement_jacobians(x, drive, z_hat, nu.shape[-1])
-        Rn = M @ m.measurement_noise_cov(x.dtype, x.device) @ M.transpose(-1, -2)
-        PHt = P @ H.transpose(-1, -2)
-        HPHt = H @ PHt
-        L = _cholesky(HPHt + Rn)
-        nis = (nu.unsqueeze(-1) * torch.cholesky_solve(nu.unsqueeze(-1), L)).sum((-1, -2))
-        if gated and self.gate is not None and bool((nis > self.gate).any()):
+        Rn = c.Rn if M is None else _sandwich(M, c.Rn)
+        PHt = matmul(P, H.transpose(-1, -2))
+        HPHt = matmul(H, PHt)
+        nu_col = nu.unsqueeze(-1)
+        rhs = torch.cat((nu_col, PHt.transpose(-1, -2)), -1)  # [nu | H P]
+        X, failed = _solve(HPHt + Rn, rhs)  # S^-1 [nu | H P]
+        nis = (nu_col * X[..., :1]).sum((-1, -2))
+        if gated and self.gate is not None:
             # an innovation beyond the gate: the measurement noise inflated by nis / gate
-            Rn = Rn * (nis / self.gate).clamp(min=1.0)[..., None, None]
-            L = _cholesky(HPHt + Rn)
-        K = torch.cholesky_solve(PHt.transpose(-1, -2), L).transpose(-1, -2)  # P H^T S^-1
-        delta = (K @ nu.unsqueeze(-1)).squeeze(-1)
-        x_new = g.rplus(x, delta)
-        eye = torch.eye(g.tangent_dim, dtype=x.dtype, device=x.device)
-        A = eye - K @ H
-        P_new = A @ P @ A.transpose(-1, -2) + K @ Rn @ K.transpose(-1, -2)
-        if self.reset:
-            J = None
-            if self.jacobians == "analytic":
-                try:
-                    J = m.reset_jacobian(x, delta)
-                except NotImplementedError:
-                    J = None
-            if J is None:
-                J = self.reset_jacobian(x, delta, x_new)
-            P_new = J @ P_new @ J.transpose(-1, -2)
-        return EKFState(x_new, _symmetric(P_new)), nis
+            # (compiled: always, by a factor of exactly 1 below the gate; no branch in a graph)
+            compiling = torch.compiler.is_compiling()
+            if compiling or bool((nis > self.gate).any()):
+                Rn = Rn * (nis / self.gate).clamp(min=1.0)[..., None, None]
+                X, failed_again = _solve(HPHt + Rn, rhs)
+                failed = failed_again if failed is None else failed | failed_again
+        delta = matmul(PHt, X[..., :1]).squeeze(-1)  # K nu
+        K = X[..., 1:].transpose(-1, -2)  # P H^T S^-1
+        if not self.reset:
+            x_new, J = g.rplus(x, delta), None
+        elif self.jacobians == "analytic":
+            x_new, J = m.linearize_reset(x, delta)
+        else:
+            x_new, J = g.rplus(x, delta), None
+        if J is None and self.reset:
+            J = self.reset_jacobian(x, delta, x_new)
+        # Joseph form and reset in one: J (A P A^T + K Rn K^T) J^T with A = I - K H is
+        # (J A) P (J A)^T + (J K) Rn (J K)^T, and J A = J - (J K) H
+        if J is None:
+            J = c.eye
+        else:
+            K = matmul(J, K)
+        JA = _minus_product(J, K, H)
+        return x_new, _symmetric(_sandwich(JA, P, _sandwich(K, Rn))), nis, failed
+
+    def _step(self, x, P, y, u, gated, c):
+        """One step on plain tensors, ``(x, P, nis, failed)``: what :meth:`step` runs, eager or
+        compiled."""
+        state, w = self._predict(EKFState(x, P), y, u, c)
+        return self._update(state, y, w, gated, c)
 
     def step(
-        self, state: EKFState, y: torch.Tensor, u: torch.Tensor, gated: bool = True
+        self,
+        state: EKFState,
+        y: torch.Tensor,
+        u: torch.Tensor,
+        gated: bool = True,
+        constants: EKFConstants | None = None,
     ) -> tuple[EKFState, torch.Tensor]:
-        """One predict and update, ``k -> k+1``; returns the new state and the NIS."""
-        state, w = self.predict(state, y, u)
-        return self.update(state, y, w, gated)
+        """One predict and update, ``k -> k+1``; returns the new state and the NIS.
+
+        ``constants``: :meth:`constants` for the state's dtype and device, computed once for a
+        loop of steps (default: computed here). With ``compile=True`` the step runs as one
+        compiled graph (compiled at the first call, again for a new shape or dtype)."""
+        c = constants or self.constants(state.x.dtype, state.x.device)
+        step = self._step
+        if self.compile:
+            if self._compiled is None:
+                self._compiled = torch.compile(self._step, dynamic=False)
+            step = self._compiled
+        x, P, nis, failed = step(state.x, state.P, y, u, gated, c)
+        _check_factored(failed)
+        return EKFState(x, P), nis
 
     # ------------------------------------------------------------------ whole sequences
 
@@ -364,12 +468,15 @@ class ErrorStateEKF:
             cov[:, 0] = state.P
         nis = measurements.new_empty(n_seq, t)
         est[:, 0] = state.x
+        consts = self.constants(dtype, device)
         t0 = time.perf_counter()
-        with torch.no_grad():
+        with torch.inference_mode():  # the step's tensors are local; est, cov, nis are not
             steps = progress(range(t), desc=f"{self.name} steps", enabled=self.progress, delay=2.0)
             for k in steps:
                 gated = k >= self.gate_after
-                state, nis[:, k] = self.step(state, measurements[:, k], inputs[:, k], gated)
+                state, nis[:, k] = self.step(
+                    state, measurements[:, k], inputs[:, k], gated, consts
+                )
                 est[:, k + 1] = state.x
                 if cov is not None:
                     cov[:, k + 1] = state.P

@@ -129,6 +129,47 @@ class FilterModel(abc.ABC):
         """``d/de rminus(x·exp(delta + e), x·exp(delta))`` at 0, ``(*batch, n, n)``. Optional."""
         raise NotImplementedError
 
+    # the analytic filter's calls: one per stage of a step, so that a model can share the work
+    # (an exp and its Jacobians) and keep the number of operations small
+
+    def linearize_step(
+        self, x: torch.Tensor, y: torch.Tensor, u: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(xhat^-, w, F, G)``: the prediction, the drive and :meth:`process_jacobians`.
+
+        Default: :meth:`drive`, :meth:`step` and :meth:`process_jacobians`; a model overrides it
+        to compute them in one pass (tested equal to them). ``F`` and ``G`` may be ``(n, n)``,
+        ``(n, q)`` when they do not depend on the batch.
+        """
+        w = self.drive(x, y, u)
+        F, G = self.process_jacobians(x, y, u)
+        return self.step(x, w), w, F, G
+
+    def linearize_measurement(
+        self, x: torch.Tensor, drive: torch.Tensor, y: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor | None]:
+        """``(nu, H, M)``: the innovation ``residual(observation(y), measure(x, drive))``
+        ``(*batch, d)`` and :meth:`measurement_jacobians`; ``M = None`` stands for the identity
+        (the update's noise enters the residual as it is), ``H`` may be ``(d, n)``.
+
+        Default: :meth:`measure`, :meth:`residual` and :meth:`measurement_jacobians`.
+        """
+        nu = self.residual(self.observation(y), self.measure(x, drive))
+        H, M = self.measurement_jacobians(x, drive)
+        return nu, H, M
+
+    def linearize_reset(
+        self, x: torch.Tensor, delta: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor | None]:
+        """``(x·exp(delta), J)`` with ``J`` :meth:`reset_jacobian`, or ``None`` where the model
+        has none (the filter then takes it by autograd). Default: ``group.rplus`` and
+        :meth:`reset_jacobian`."""
+        try:
+            J = self.reset_jacobian(x, delta)
+        except NotImplementedError:
+            J = None
+        return self.group.rplus(x, delta), J
+
 
 class SystemFilterModel(FilterModel):
     """The plain filter model of a :class:`~manifold_nets.system.System`.

@@ -19,7 +19,10 @@ batched over trials and a grid of gains ``(k_p, k_i, k_m)`` at once (numpy float
 **EKF** (:class:`BroadFilterModel` in :class:`manifold_nets.ekf.ErrorStateEKF`, analytic
 Jacobians): state ``(R, b_omega)`` on ``Product(SO3(), Euclidean(3))``, drive ``(gyr - b - n_g,
 n_b)`` (gyro noise, bias random walk per step), update ``(a, m) = (R^T e_z, R^T m_ref) + r``.
-Batched over trials and a grid of noise levels (the covariances carry a batch dimension).
+Batched over trials and a grid of noise levels (the covariances carry a batch dimension). The
+model's ``linearize_*`` methods compute each stage of a step in one pass (one ``exp`` for the
+prediction and its Jacobians, one for the correction and the reset), so a step is about a
+hundred torch operations.
 
 Tuning (:func:`tune`): the gains with the least mean (over training trials) total RMSE of the
 benchmark's metric, the error accumulated online so a grid over whole trials fits in memory.
@@ -35,8 +38,8 @@ import numpy as np
 import torch
 
 from groups import SO3, Euclidean, Product
-from groups.so3 import left_jacobian, skew
 from manifold_nets.ekf import ErrorStateEKF, FilterModel
+from manifold_nets.ekf_so3 import exp_and_left_jacobian, matmul, skew_matrix
 
 from ..attitude.triad import triad
 from .data import Trial, quat_to_matrix
@@ -58,8 +61,9 @@ UP = np.array([0.0, 0.0, 1.0])
 #: ``(k_p, k_i, k_m)``: rad/s per unit of cross product, 1/s^2, the magnetometer's weight
 MAHONY_GRID = {"k_p": [0.1, 0.3, 1.0, 3.0], "k_i": [0.0, 0.003, 0.03], "k_m": [0.1, 0.3, 1.0]}
 #: standard deviations: gyro rad/s, bias walk rad/s per step, unit acc and unit mag per step
-#: (9 combinations: the EKF runs ~5 ms per step on one CPU core, whatever the batch up to ~20,
-#: ~25 ms at a batch of 200, so :func:`tune` runs it on the first ``max_samples`` of each trial)
+#: (9 combinations: a step of the EKF takes about 0.4 ms of one CPU core at a batch of 8, 0.85 ms
+#: at 99 (this grid over the 11 training trials), 1.6 ms at 200 (benchmarks/results/ekf.md), and
+#: :func:`tune` runs it on the first ``max_samples`` of each trial)
 EKF_GRID = {
     "gyro": [0.01],
     "bias_walk": [1e-5],
@@ -216,11 +220,29 @@ class BroadFilterModel(FilterModel):
         self.dt = 1.0 / float(rate)
         self.m_ref = torch.as_tensor(np.asarray(m_ref, dtype=np.float64))
         self.std = {"gyro": gyro, "bias_walk": bias_walk, "acc": acc, "mag": mag}
+        self._made: dict = {}
 
     def _cov(self, names, dtype, device):
         parts = [torch.as_tensor(self.std[n], dtype=dtype, device=device) for n in names]
         std = torch.stack(torch.broadcast_tensors(*parts), -1)
         return torch.diag_embed(std.repeat_interleave(3, -1) ** 2)
+
+    def _constants(self, like: torch.Tensor) -> dict[str, torch.Tensor]:
+        """``world`` ``(3, 2)`` (``e_z``, ``m_ref``), ``bias_rows`` ``[0 | I_3]`` ``(3, 6)`` (and
+        twice, ``bias_rows_FG``), ``zeros`` ``(6, 3)``, in ``like``'s dtype and device, made
+        once."""
+        key = (like.dtype, like.device)
+        c = self._made.get(key)
+        if c is None:
+            up = torch.tensor([0.0, 0.0, 1.0], dtype=like.dtype, device=like.device)
+            eye6 = torch.eye(6, dtype=like.dtype, device=like.device)
+            c = self._made[key] = {
+                "world": torch.stack((up, self.m_ref.to(like)), -1),
+                "bias_rows": eye6[3:],
+                "bias_rows_FG": torch.cat((eye6[3:], eye6[3:]), -1),
+                "zeros": torch.zeros(6, 3, dtype=like.dtype, device=like.device),
+            }
+        return c
 
     def drive(self, x, y, u, noise=None):
         w = u - x[..., 9:12]
@@ -232,9 +254,9 @@ class BroadFilterModel(FilterModel):
         return self.group.rplus(x, torch.cat((drive[..., :3] * self.dt, drive[..., 3:]), -1))
 
     def _directions(self, x):
-        R = x[..., :9].reshape(*x.shape[:-1], 3, 3)
-        world = torch.stack((torch.tensor([0.0, 0, 1]).to(self.m_ref), self.m_ref), -1)
-        return (R.transpose(-1, -2) @ world.to(R)).transpose(-1, -2)  # (*batch, 2, 3)
+        """``R^T (e_z, m_ref)`` ``(*batch, 2, 3)``."""
+        R = x[..., :9].unflatten(-1, (3, 3))
+        return (R.transpose(-1, -2) @ self._constants(x)["world"]).transpose(-1, -2)
 
     def measure(self, x, drive, noise=None):
         z = self._directions(x).reshape(*x.shape[:-1], 6)
@@ -251,29 +273,49 @@ class BroadFilterModel(FilterModel):
         std = torch.tensor([1.0] * 3 + [0.01] * 3, dtype=dtype, device=device)
         return x0, torch.diag_embed(std**2).expand(batch, 6, 6).clone()
 
+    def _blocks(self, top: torch.Tensor) -> torch.Tensor:
+        """``[[top], [0 | I_3]]`` ``(*batch, 6, 6)`` from ``top`` ``(*batch, 3, 6)``."""
+        rows = self._constants(top)["bias_rows"].expand(*top.shape[:-2], 3, 6)
+        return torch.cat((top, rows), -2)
+
+    def linearize_step(self, x, y, u):
+        """``R^- = R exp(w dt)``, ``w = u - b``; ``F = [[exp(w dt)^T, -J_r dt], [0, I]]``,
+        ``G = [[-J_r dt, 0], [0, I]]`` with ``J_r = J_r(w dt)``."""
+        w = u - x[..., 9:12]
+        E, Jl, _, _ = exp_and_left_jacobian(w * self.dt)
+        R = x[..., :9].unflatten(-1, (3, 3))
+        x_pred = torch.cat((matmul(R, E).flatten(-2), x[..., 9:12]), -1)
+        mJr = Jl.transpose(-1, -2) * -self.dt
+        c = self._constants(x)
+        top = torch.cat((E.transpose(-1, -2), mJr, mJr, c["zeros"][:3].expand_as(E)), -1)
+        FG = torch.cat((top, c["bias_rows_FG"].expand_as(top)), -2)  # [F | G]
+        return x_pred, torch.cat((w, torch.zeros_like(w)), -1), FG[..., :6], FG[..., 6:]
+
     def process_jacobians(self, x, y, u):
-        w = (u - x[..., 9:12]) * self.dt
-        Jr = left_jacobian(-w)
-        eye = torch.eye(3, dtype=x.dtype, device=x.device).expand_as(Jr)
-        zero = torch.zeros_like(Jr)
-        F = torch.cat((torch.cat((SO3().exp(w).transpose(-1, -2), -Jr * self.dt), -1),
-                       torch.cat((zero, eye), -1)), -2)  # fmt: skip
-        G = torch.cat((torch.cat((-Jr * self.dt, zero), -1), torch.cat((zero, eye), -1)), -2)
-        return F, G
+        return self.linearize_step(x, y, u)[2:]
+
+    def linearize_measurement(self, x, drive, y):
+        """``nu = y - (R^T e_z, R^T m_ref)``, ``H = [[[d_1]x, 0], [[d_2]x, 0]]``, ``M = I``."""
+        d = self._directions(x)  # (*batch, 2, 3)
+        nu = y - d.reshape(*x.shape[:-1], 6)
+        Hd = skew_matrix(d).reshape(*x.shape[:-1], 6, 3)
+        zeros = self._constants(x)["zeros"].expand(*x.shape[:-1], 6, 3)
+        return nu, torch.cat((Hd, zeros), -1), None
 
     def measurement_jacobians(self, x, drive):
-        d = self._directions(x)
-        zero = torch.zeros_like(d[..., 0, :, None].expand(*d.shape[:-2], 3, 3))
-        H = torch.cat((torch.cat((skew(d[..., 0, :]), zero), -1),
-                       torch.cat((skew(d[..., 1, :]), zero), -1)), -2)  # fmt: skip
-        M = torch.eye(6, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], 6, 6)
-        return H, M
+        _, H, _ = self.linearize_measurement(x, drive, x.new_zeros(*x.shape[:-1], 6))
+        return H, torch.eye(6, dtype=x.dtype, device=x.device).expand(*x.shape[:-1], 6, 6)
+
+    def linearize_reset(self, x, delta):
+        """``(R exp(dtheta), b + db)`` and ``blockdiag(J_r(dtheta), I_3)``."""
+        E, Jl, _, _ = exp_and_left_jacobian(delta[..., :3])
+        R = x[..., :9].unflatten(-1, (3, 3))
+        x_new = torch.cat((matmul(R, E).flatten(-2), x[..., 9:12] + delta[..., 3:]), -1)
+        zeros = self._constants(x)["zeros"][:3].expand_as(E)
+        return x_new, self._blocks(torch.cat((Jl.transpose(-1, -2), zeros), -1))
 
     def reset_jacobian(self, x, delta):
-        J = torch.zeros(*delta.shape[:-1], 6, 6, dtype=x.dtype, device=x.device)
-        J[..., :3, :3] = left_jacobian(-delta[..., :3])
-        J[..., 3:, 3:] = torch.eye(3, dtype=x.dtype, device=x.device)
-        return J
+        return self.linearize_reset(x, delta)[1]
 
 
 def _ekf_loop(data, m_ref, noise, rate, store):
@@ -285,19 +327,24 @@ def _ekf_loop(data, m_ref, noise, rate, store):
     per_seq = {k: torch.as_tensor(np.repeat(np.asarray(v, float), n_t)) for k, v in noise.items()}
     model = BroadFilterModel(rate, m_ref, **per_seq)
     filt = ErrorStateEKF(model, jacobians="analytic", progress=False)
-    tens = {k: torch.from_numpy(np.ascontiguousarray(data[k])) for k in ("gyr", "acc", "mag")}
+    # the measurements and the gyro of every step, time-major: (T, Nt, 6), (T, Nt, 3)
+    y_all = torch.from_numpy(np.concatenate((data["acc"], data["mag"]), -1).swapaxes(0, 1).copy())
+    u_all = torch.from_numpy(data["gyr"].swapaxes(0, 1).copy())
     R0 = torch.from_numpy(initial_attitude(data["acc"][:, 0], data["mag"][:, 0], m_ref))
     x0 = torch.cat((R0.reshape(n_t, 9), torch.zeros(n_t, 3)), -1).repeat(n_g, 1)
     std = torch.tensor([0.05] * 3 + [0.01] * 3, dtype=torch.float64)
     state = filt.init(n_g * n_t, x0=x0, P0=torch.diag_embed(std**2).expand(n_g * n_t, 6, 6))
+    consts = filt.constants(torch.float64)
     out = np.empty((n_g, n_t, t_max, 9)) if store else None
     sq = np.zeros((n_g, n_t))
     t0 = time.perf_counter()
-    with torch.no_grad(), _OneThread():
+    with torch.inference_mode(), _OneThread():
         for k in range(t_max):
             if k > 0:
-                y = torch.cat((tens["acc"][:, k], tens["mag"][:, k]), -1).repeat(n_g, 1)
-                state, _ = filt.step(state, y, tens["gyr"][:, k].repeat(n_g, 1))
+                y, u = y_all[k], u_all[k]
+                if n_g > 1:  # one copy per grid point
+                    y, u = y.repeat(n_g, 1), u.repeat(n_g, 1)
+                state, _ = filt.step(state, y, u, True, consts)
             R = state.x[:, :9].numpy().reshape(n_g, n_t, 9)
             if store:
                 out[:, :, k] = R

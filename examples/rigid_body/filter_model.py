@@ -13,8 +13,14 @@ import math
 import torch
 
 from groups import SO3
-from groups.so3 import left_jacobian, skew
 from manifold_nets.ekf import BiasedReadingsFilterModel
+from manifold_nets.ekf_so3 import (
+    exp_and_left_jacobian,
+    matmul,
+    skew_matrix,
+    so3_coefficients,
+    so3_log,
+)
 from manifold_nets.system import check_number
 
 from .filter_support import _check_system
@@ -49,57 +55,63 @@ def _scaled_eye(std, n: int, dtype, device) -> torch.Tensor:
 # ------------------------------------------------------------------ d(J_l(phi) v)/dphi
 
 
-def _dB_dt2(t2: torch.Tensor) -> torch.Tensor:
-    """``d/d(t^2) (1 - cos t)/t^2 = (t sin t - 2 (1 - cos t)) / (2 t^4)``."""
-    small = t2 < (0.1 if t2.dtype == torch.float64 else 0.5) ** 2
-    s = torch.where(small, torch.ones_like(t2), t2)
-    t = s.sqrt()
-    exact = (t * torch.sin(t) - 4.0 * torch.sin(0.5 * t) ** 2) / (2.0 * s * s)
-    series = -1 / 24 + t2 * (1 / 360 + t2 * (-1 / 13440 + t2 / 907200))
-    return torch.where(small, series, exact)
-
-
-def _dC_dt2(t2: torch.Tensor) -> torch.Tensor:
-    """``d/d(t^2) (t - sin t)/t^3 = (3 sin t - 2 t - t cos t) / (2 t^5)``."""
-    small = t2 < (0.1 if t2.dtype == torch.float64 else 0.5) ** 2
-    s = torch.where(small, torch.ones_like(t2), t2)
-    t = s.sqrt()
-    exact = (3.0 * torch.sin(t) - 2.0 * t - t * torch.cos(t)) / (2.0 * s * s * t)
-    series = -1 / 120 + t2 * (1 / 2520 + t2 * (-1 / 120960 + t2 / 9979200))
-    return torch.where(small, series, exact)
-
-
-def jl_times_v_derivative(phi: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+def jl_times_v_derivative(
+    phi: torch.Tensor,
+    v: torch.Tensor,
+    coefficients: torch.Tensor | None = None,
+    K: torch.Tensor | None = None,
+) -> torch.Tensor:
     """``d(J_l(phi) v)/dphi``, ``(*batch, 3, 3)``, for ``phi``, ``v`` ``(*batch, 3)``.
 
     From ``J_l(phi) v = v + B phi x v + C phi x (phi x v)`` with ``B = (1 - cos t)/t^2``,
     ``C = (t - sin t)/t^3``, ``t = |phi|``:
-    ``-B [v]x + 2 B' (phi x v) phi^T + C ((phi.v) I + phi v^T - 2 v phi^T)``
-    ``+ 2 C' (phi (phi.v) - t^2 v) phi^T``
-    with ``B'``, ``C'`` the derivatives in ``t^2`` (Taylor series near 0).
+    ``-B [v]x + C (phi.v) I + phi (C v)^T + (u - 2 C v) phi^T``,
+    ``u = 2 B' phi x v + 2 C' phi x (phi x v)`` (the outer products as one ``(3, 4) (4, 3)``
+    product) with ``B'``, ``C'`` the derivatives in ``t^2`` (:func:`manifold_nets.ekf_so3.so3_coefficients`,
+    passed as ``coefficients`` with ``K = [phi]x`` when already computed).
     """
-    from groups import numerics as nx
+    if coefficients is None:
+        coefficients = so3_coefficients((phi * phi).sum(-1))
+    if K is None:
+        K = skew_matrix(phi)
+    c = _constants(phi)
+    Kv = matmul(K, v.unsqueeze(-1))
+    U = torch.cat((phi.unsqueeze(-1), Kv, matmul(K, Kv), v.unsqueeze(-1)), -1)  # (*, 3, 4)
+    W = (coefficients @ c["d_weights"]).unsqueeze(-1) * torch.stack((v, phi, phi, phi), -2)
+    # C (phi.v) I - B [v]x, flattened: (C (phi.v), B v) @ (vec I; -vec [e_k]x)
+    pv = (phi * v).sum(-1, keepdim=True)
+    scalars = torch.cat((coefficients[..., 2:3] * pv, coefficients[..., 1:2] * v), -1)
+    base = (scalars @ c["d_base"]).view(*phi.shape[:-1], 3, 3)
+    return torch.baddbmm(base, U, W) if U.dim() == 3 else base + U @ W
 
-    t2 = (phi * phi).sum(-1)
-    b, c = nx.one_minus_cos_over_t2(t2), nx.t_minus_sin_over_t3(t2)
-    db, dc = _dB_dt2(t2), _dC_dt2(t2)
-    pv = (phi * v).sum(-1)
-    eye = torch.eye(3, dtype=phi.dtype, device=phi.device)
 
-    def outer(a, w):
-        return a.unsqueeze(-1) * w.unsqueeze(-2)
+def _constants(like: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The model's constant matrices in ``like``'s dtype and device, made once: the tables of
+    :func:`jl_times_v_derivative` (``d_weights``, ``d_base``), ``eye3``, ``eye12``,
+    ``bias_rows`` ``[0 | I_6]`` (F's last rows), ``reset_zeros`` and ``reset_rows`` (the
+    reset Jacobian's constant part) and ``top_half`` ``(12, 1)`` (1 on rows 0..5: G is F's bias columns there)."""
+    key = (like.dtype, like.device)
+    c = _CONSTANTS.get(key)
+    if c is None:
+        eye12 = torch.eye(12, dtype=like.dtype, device=like.device)
+        skew = skew_matrix(eye12[:3, :3]).flatten(-2)  # (3, 9): vec [e_k]x
+        d_weights = torch.zeros(5, 4, dtype=like.dtype, device=like.device)
+        d_weights[2, 0], d_weights[3, 1], d_weights[4, 2], d_weights[2, 3] = 1.0, 2.0, 2.0, -2.0
+        c = _CONSTANTS[key] = {
+            "d_weights": d_weights,  # (A, B, C, B', C') -> (C, 2 B', 2 C', -2 C)
+            "d_base": torch.cat((eye12[:3, :3].reshape(1, 9), -skew)),
+            "eye3": eye12[:3, :3].clone(),
+            "eye12": eye12,
+            "bias_rows": eye12[6:].clone(),
+            "reset_zeros": eye12[:3, 3:].clone(),  # (3, 9) beside J_r
+            "reset_rows": eye12[3:].clone(),  # [0 | I_9]
 
-    def col(s):
-        return s[..., None, None]
+            "top_half": (torch.arange(12, device=like.device) < 6).to(like.dtype).unsqueeze(-1),
+        }
+    return c
 
-    cross = torch.linalg.cross(phi, v)
-    dd = phi * pv.unsqueeze(-1) - t2.unsqueeze(-1) * v  # phi x (phi x v)
-    return (
-        -col(b) * skew(v)
-        + col(2 * db) * outer(cross, phi)
-        + col(c) * (col(pv) * eye + outer(phi, v) - 2 * outer(v, phi))
-        + col(2 * dc) * outer(dd, phi)
-    )
+
+_CONSTANTS: dict = {}
 
 
 class RigidBodyFilterModel(BiasedReadingsFilterModel):
@@ -172,6 +184,28 @@ class RigidBodyFilterModel(BiasedReadingsFilterModel):
 
     # analytic Jacobians
 
+    def linearize_step(self, x, y, u):
+        """The prediction ``(xhat^-, w)`` and :meth:`process_jacobians` ``(F, G)`` in one pass
+        (the system's exact step, written here with the exponential it shares with ``F``)."""
+        dt = self.dt
+        w = self.drive(x, y, u)
+        phi, vhat = w[..., :3] * dt, w[..., 3:]
+        E, Jl, K, coefficients = exp_and_left_jacobian(phi)
+        t = matmul(Jl, (vhat * -dt).unsqueeze(-1))  # (*batch, 3, 1): minus the displacement
+        D = jl_times_v_derivative(phi, vhat, coefficients, K)
+        R = x[..., :9].unflatten(-1, (3, 3))
+        mJl = Jl * -dt
+        # R [-t, -[t]x, -D dt^2, -J_l dt, exp(phi)]: the step and F's position row (its I apart)
+        blocks = torch.cat((t, skew_matrix(t.squeeze(-1)), D * -(dt * dt), mJl, E), -1)
+        RB = matmul(R, blocks)
+        x_pred = torch.cat((RB[..., 10:].flatten(-2), x[..., 9:12] - RB[..., 0], x[..., 12:]), -1)
+        zero, c = torch.zeros_like(E), _constants(x)
+        top = torch.cat((E.transpose(-1, -2), zero, mJl.transpose(-1, -2), zero), -1)
+        middle = torch.cat((RB[..., 1:4], c["eye3"].expand_as(E), RB[..., 4:10]), -1)
+        F = torch.cat((top, middle, c["bias_rows"].expand(*x.shape[:-1], 6, 12)), -2)
+        G = F[..., 6:12] * c["top_half"]  # F's bias columns, rows 6..11 zero
+        return x_pred, w, F, G
+
     def process_jacobians(self, x, y, u):
         """The discrete multiplicative-EKF ``F`` ``(*batch, 12, 12)`` and ``G`` ``(*batch, 12, 6)``.
 
@@ -185,26 +219,15 @@ class RigidBodyFilterModel(BiasedReadingsFilterModel):
 
         with ``J_r(phi) = J_l(phi)^T`` and ``D = d(J_l(phi) vhat)/dphi``.
         """
-        dt = self.dt
-        w = self.drive(x, y, u)
-        phi, vhat = w[..., :3] * dt, w[..., 3:]
+        return self.linearize_step(x, y, u)[2:]
+
+    def linearize_measurement(self, x, drive, y):
+        """``nu = (log(Rhat^T R^m), p^m - phat)``, ``H = [I_6 | 0]`` ``(6, 12)``, ``M = I_6``
+        (``None``): the residual of the system's ``measurement_residual``, without the readings."""
         R = x[..., :9].unflatten(-1, (3, 3))
-        Jl = left_jacobian(phi)
-        t = (Jl @ vhat.unsqueeze(-1)).squeeze(-1) * dt
-        D = jl_times_v_derivative(phi, vhat)
-        batch = x.shape[:-1]
-        F = torch.zeros(*batch, 12, 12, dtype=x.dtype, device=x.device)
-        eye3 = torch.eye(3, dtype=x.dtype, device=x.device)
-        F[..., 0:3, 0:3] = _SO3.exp(phi).transpose(-1, -2)
-        F[..., 0:3, 6:9] = -Jl.transpose(-1, -2) * dt
-        F[..., 3:6, 0:3] = -R @ skew(t)
-        F[..., 3:6, 3:6] = eye3
-        F[..., 3:6, 6:9] = -(R @ D) * dt * dt
-        F[..., 3:6, 9:12] = -(R @ Jl) * dt
-        F[..., 6:12, 6:12] = torch.eye(6, dtype=x.dtype, device=x.device)
-        G = F[..., :, 6:12].clone()
-        G[..., 6:12, :] = 0.0
-        return F, G
+        Rm = y[..., :9].unflatten(-1, (3, 3))
+        nu = torch.cat((so3_log(matmul(R.transpose(-1, -2), Rm)), y[..., 9:12] - x[..., 9:12]), -1)
+        return nu, _constants(x)["eye12"][:6], None
 
     def measurement_jacobians(self, x, drive):
         """``H = [I_6 | 0]``, ``M = I_6``: the residual ``(log(exp(dtheta) exp(w1)), dp + w2)``."""
@@ -214,9 +237,20 @@ class RigidBodyFilterModel(BiasedReadingsFilterModel):
         M = eye[:6, :6].expand(*batch, 6, 6)
         return H, M
 
+    def linearize_reset(self, x, delta):
+        """``x·exp(delta)`` and :meth:`reset_jacobian`, sharing ``exp(dtheta)`` and ``J_l``."""
+        E, Jl, _, _ = exp_and_left_jacobian(delta[..., :3])
+        R = x[..., :9].unflatten(-1, (3, 3))
+        x_new = torch.cat((matmul(R, E).flatten(-2), x[..., 9:] + delta[..., 3:]), -1)
+        return x_new, self._reset_matrix(Jl.transpose(-1, -2))
+
+    def _reset_matrix(self, Jr: torch.Tensor) -> torch.Tensor:
+        """``blockdiag(J_r, I_9)`` ``(*batch, 12, 12)``, written once (a large batch's cost is
+        its memory traffic)."""
+        c, batch = _constants(Jr), Jr.shape[:-2]
+        top = torch.cat((Jr, c["reset_zeros"].expand(*batch, 3, 9)), -1)
+        return torch.cat((top, c["reset_rows"].expand(*batch, 9, 12)), -2)
+
     def reset_jacobian(self, x, delta):
         """``blockdiag(J_r(dtheta), I_9)``: ``log(exp(-d) exp(d + e)) = J_r(d) e + O(e^2)``."""
-        batch = delta.shape[:-1]
-        J = torch.eye(12, dtype=delta.dtype, device=delta.device).repeat(*batch, 1, 1)
-        J[..., :3, :3] = left_jacobian(-delta[..., :3])
-        return J
+        return self.linearize_reset(x, delta)[1]

@@ -23,7 +23,10 @@ difference of ``vec R`` would be a 9-vector of rank-3 covariance, curved away fr
 :meth:`~RigidBodyFilterModel.measurement_jacobians` are the analytic multiplicative-EKF Jacobians
 of this discrete model (exact, including the derivative of ``J_l(phi) v`` in ``phi``), used with
 ``ErrorStateEKF(model, jacobians="analytic")``; the tests check them against autograd and finite
-differences.
+differences. The filter asks for them through :meth:`~RigidBodyFilterModel.linearize_step`
+(the step and ``F``, ``G`` from one ``exp(phi)``, ``J_l(phi)``),
+:meth:`~RigidBodyFilterModel.linearize_measurement` and
+:meth:`~RigidBodyFilterModel.linearize_reset`.
 
 **The EKF as an estimator** (:class:`RigidBodyEKF`): the generic
 :class:`manifold_nets.ekf.ErrorStateEKF` on that model, started at step 5 from a batch
@@ -67,8 +70,6 @@ from .ekf_estimator import (  # noqa: F401
 )
 from .filter_model import (  # noqa: F401
     RigidBodyFilterModel,
-    _dB_dt2,
-    _dC_dt2,
     _noise_param,
     _scaled_eye,
     jl_times_v_derivative,
