@@ -24,6 +24,7 @@ from .data import TrajectoryDataset
 from .observer import CovarianceReadout, ResidualObserver
 from .observer.covariance import gaussian_nll, readout_inputs
 from .progress import progress
+from .training_losses import initial_state
 
 __all__ = ["Sequences", "readout_sequences", "fit_covariance", "mean_nll"]
 
@@ -51,10 +52,11 @@ class Sequences(NamedTuple):
 @torch.no_grad()
 def readout_sequences(
     observer: ResidualObserver, data: TrajectoryDataset, source: str = "residual", skip: int = 1,
-    batch_size: int = 250,
+    batch_size: int = 250, start=None,
 ) -> Sequences:
-    """``data``'s sequences as a readout of ``source`` sees them; the steps ``k >= skip`` (and
-    ``data.mask``, when it has one) count."""
+    """``data``'s sequences as a readout of ``source`` sees them, the observer started at
+    ``start(batch)`` (a :data:`~manifold_nets.training_losses.StartFn`) or its own start; the
+    steps ``k >= skip`` (and ``data.mask``, when it has one) count."""
     if isinstance(skip, bool) or not isinstance(skip, int) or not 1 <= skip <= data.length:
         raise ValueError(f"skip must be an integer in [1, {data.length}], got {skip!r}.")
     was = observer.training
@@ -64,14 +66,15 @@ def readout_sequences(
         for s in range(0, len(data), batch_size):
             part = data[torch.arange(s, min(len(data), s + batch_size))]
             inputs = part.inputs if part.inputs.shape[-1] else None
-            run = observer.rollout(part.measurements, inputs, keep_hidden=True)
+            state = initial_state(observer, part, start)
+            run = observer.rollout(part.measurements, inputs, state=state, keep_hidden=True)
             xi = tangent_errors(observer.group, run.estimates, part.states)[:, 1:]
             known = torch.zeros(xi.shape[:2], dtype=torch.bool)
             known[:, skip - 1 :] = True
             if part.mask is not None:
                 known &= part.mask[:, 1:].bool()
             z = readout_inputs(
-                observer, source, run.estimates[:, 1:].flatten(2), part.measurements,
+                observer, source, run.estimates[:, 1:].flatten(2), part.measurements, inputs,
                 tuple(h[:, 1:] for h in run.hidden),
             )
             parts.append(Sequences(z, xi.double(), known))

@@ -79,7 +79,7 @@ def _measurements(n, t, seed=5):
     return GROUP.embed(x)
 
 
-@pytest.mark.parametrize("source", ["residual", "hidden"])
+@pytest.mark.parametrize("source", ["residual", "hidden", "readings"])
 def test_rollout_online_and_exported_steps_give_the_same_estimates_and_covariances(source):
     obs = _observer()
     r = CovarianceReadout(GROUP, input_width(obs, source), "factor", memory=4, source=source)
@@ -189,3 +189,16 @@ def test_the_calibrated_step_exports_with_torch_export_and_gives_the_same_covari
             *flat_exported, P_exp = program.module()(*flat_exported, y[:, k])
             torch.testing.assert_close(P_exp, P, rtol=1e-6, atol=1e-12)
             torch.testing.assert_close(flat_exported[0], flat_eager[0], rtol=0, atol=1e-12)
+
+
+def test_broad_calibration_cuts_sequences_into_windows_without_losing_a_known_step():
+    from manifold_nets_examples.broad.calibration import _windows
+
+    feats = torch.arange(2 * 7, dtype=torch.float32).reshape(2, 7, 1)
+    errors = torch.arange(2 * 7 * 3, dtype=torch.float64).reshape(2, 7, 3)
+    known = torch.ones(2, 7, dtype=torch.bool)
+    known[1, 4:] = False  # the second sequence's last window holds no known step
+    out = _windows(Sequences(feats, errors, known), 3)
+    assert out.features.shape == (5, 3, 1) and out.known.sum() == known.sum()
+    torch.testing.assert_close(out.errors[out.known], errors[known])
+    assert not out.known[2, 1:].any()  # the first sequence's padded tail

@@ -8,13 +8,17 @@ right perturbation, as in the project's EKF: :mod:`manifold_nets.ekf`). A
 * ``"residual"`` (default where the measurement names measured factors): the residual of the
   step's measurement against the new estimate, ``log(xhat_{k,f}^-1 m_{k,f})`` per measured factor
   (what the update left unexplained: its size follows the noise level);
-* ``"hidden"``: the core's hidden state after the step (for observers that measure no factor).
+* ``"hidden"``: the core's hidden state after the step;
+* ``"readings"``: the step's measurement and input ``(y_k, u_{k-1})`` as they are (for observers
+  that measure no factor, e.g. an IMU's: how fast it turns and how far the accelerometer is from
+  gravity say how hard the step was).
 
 Its inputs are standardised (a shift and a scale fixed from the training data), a small GRU
 (``memory`` wide; the readout's own memory of how noisy the recent steps were) runs over them and
 a linear map reads ``L_k`` off it. On the paper's rigid body the residual was the better input
-(validation NLL -28.4 against -27.7 for residual and hidden state together, -26.2 for the hidden
-state alone, which could not tell the noise levels apart; docs/calibration.md). Structures:
+(validation NLL -28.4 against -27.7 for residual and hidden state together and -27.2 for the
+hidden state alone, which could not tell the noise levels apart: ANEES 0.39 at sigma 0.1, 1.53
+at 0.5; ``benchmarks/bench_covariance_inputs.py``). Structures:
 
 * ``structure="diagonal"``: ``L`` diagonal (one variance per tangent component);
 * ``"factor"``: block diagonal, one full block per factor of the group (SO(3)'s three angles
@@ -51,7 +55,7 @@ __all__ = [
 ]
 
 STRUCTURES = ("diagonal", "factor", "joint")
-SOURCES = ("residual", "hidden")
+SOURCES = ("residual", "hidden", "readings")
 
 
 def hidden_features(hidden: Hidden) -> torch.Tensor:
@@ -65,15 +69,20 @@ def input_width(observer: ResidualObserver, source: str) -> int:
     """How many numbers a readout of ``source`` reads per step of ``observer``."""
     if source == "hidden":
         return hidden_features(observer.core.initial_hidden(1)).shape[-1]
+    if source == "readings":
+        return observer.measurement_dim + observer.input_dim
     return observer.measurement.innovation_dim
 
 
 def readout_inputs(observer: ResidualObserver, source: str, x: torch.Tensor, y: torch.Tensor,
-                   hidden: Hidden) -> torch.Tensor:
+                   u: torch.Tensor | None, hidden: Hidden) -> torch.Tensor:
     """A readout's inputs ``(*batch, W)`` (float32) for estimates ``x`` ``(*batch, numel)`` after
-    measurements ``y`` ``(*batch, l)`` and the core's states ``hidden`` (each ``(*batch, ...)``)."""
+    measurements ``y`` ``(*batch, l)`` (inputs ``u`` ``(*batch, m)`` or ``None``) and the core's
+    states ``hidden`` (each ``(*batch, ...)``)."""
     if source == "hidden":
         return hidden_features(hidden).float()
+    if source == "readings":
+        return (y if u is None or not observer.input_dim else torch.cat([y, u.to(y)], -1)).float()
     m = observer.measurement
     lead = x.shape[:-1]
     ys = y.reshape(-1, y.shape[-1]).to(observer.state_dtype)
@@ -240,17 +249,19 @@ class CalibratedObserver(nn.Module):
     def group(self) -> LieGroup:
         return self.observer.group
 
-    def inputs(self, x: torch.Tensor, y: torch.Tensor, hidden: Hidden) -> torch.Tensor:
+    def inputs(self, x, y, u, hidden) -> torch.Tensor:
         """:func:`readout_inputs` of this observer and readout."""
-        return readout_inputs(self.observer, self.readout.source, x, y, hidden)
+        return readout_inputs(self.observer, self.readout.source, x, y, u, hidden)
 
-    def forward(self, measurements, inputs=None):
+    def forward(self, measurements, inputs=None, state: ObserverState | None = None):
         """``(estimates (N, T+1, *element_shape), covariances (N, T+1, n, n))`` from the
-        observer's start; the first covariance is the start's."""
-        run = self.observer.rollout(measurements, inputs, keep_hidden=True)
+        observer's start (or ``state``: an observer state, the readout's memory starting fresh);
+        the first covariance is the start's."""
+        run = self.observer.rollout(measurements, inputs, state=state, keep_hidden=True)
         n = run.estimates.shape[0]
         z = self.inputs(
-            run.estimates[:, 1:].flatten(2), measurements, tuple(h[:, 1:] for h in run.hidden)
+            run.estimates[:, 1:].flatten(2), measurements, inputs,
+            tuple(h[:, 1:] for h in run.hidden),
         )
         chol, _ = self.readout.cholesky(z, self.readout.initial_memory(n, z.device))
         chol = torch.cat([self.readout.initial_cholesky((n, 1)), chol], dim=1)
@@ -264,7 +275,7 @@ class CalibratedObserver(nn.Module):
     def step(self, state: CalibratedState, y: torch.Tensor, u: torch.Tensor | None = None):
         """One online step: ``(new state, P (B, n, n))``."""
         obs = self.observer.step(state.observer, y, u)
-        z = self.inputs(obs.estimate.flatten(1), y, obs.hidden)
+        z = self.inputs(obs.estimate.flatten(1), y, u, obs.hidden)
         chol, memory = self.readout.cholesky(z.unsqueeze(1), state.memory)
         return CalibratedState(obs, memory), CovarianceReadout.covariance(chol[:, 0])
 
@@ -292,6 +303,7 @@ class CalibratedStep(nn.Module):
         k = self.step.num_hidden  # the observer's state tensors after x, then the memory
         state, memory, rest = args[:k], args[k], args[k + 1 :]
         out = self.step(x, *state, *rest)
-        z = self.calibrated.inputs(out[0], rest[0], out[1 : 1 + self.layers])
+        u = rest[1] if len(rest) > 1 else None
+        z = self.calibrated.inputs(out[0], rest[0], u, out[1 : 1 + self.layers])
         chol, memory = self.calibrated.readout.cholesky(z.unsqueeze(1), memory)
         return (*out, memory, CovarianceReadout.covariance(chol[:, 0]))
