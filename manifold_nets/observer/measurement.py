@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import torch
 
 from .piece import Piece, check_factor, check_int, check_number, check_spans
-from .robust import RobustWeights, safe_norm
+from .robust import MAX_SIZE, RobustWeights, safe_norm
 
 __all__ = ["Measurement", "RobustMeasurement", "StepView"]
 
@@ -130,7 +130,7 @@ class RobustMeasurement(Measurement):
                 "a robust measurement weighs the innovations of the measured factors, but it "
                 "names none; give factors ({R: [0, 9], p: [9, 12]}) or use a plain measurement."
             )
-        width = check_int("robust measurement: width", width, 1)
+        width = check_int("robust measurement: width", width, 1, high=MAX_SIZE)
         span = check_number("robust measurement: span", span, 1e-12, 1e12)
         self.robust = RobustWeights(len(self.factors), width, span)
 

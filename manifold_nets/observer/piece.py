@@ -88,10 +88,14 @@ def check_number(owner: str, value: object, low: float, high: float, what: str =
     return float(value)
 
 
-def check_int(owner: str, value: object, low: int, what: str = "") -> int:
-    """``value``, or a ``ValueError`` naming ``owner`` unless it is an integer ``>= low``."""
-    if isinstance(value, bool) or not isinstance(value, int) or value < low:
-        raise ValueError(f"{owner} must be an integer >= {low}{what}, got {value!r}.")
+def check_int(owner: str, value: object, low: int, what: str = "", high: int | None = None) -> int:
+    """``value``, or a ``ValueError`` naming ``owner`` unless it is an integer ``>= low`` (and
+    ``<= high``, when given)."""
+    if isinstance(value, bool) or not isinstance(value, int) or value < low or (
+        high is not None and value > high
+    ):
+        bound = f">= {low}" if high is None else f"in {low} .. {high}"
+        raise ValueError(f"{owner} must be an integer {bound}{what}, got {value!r}.")
     return value
 
 

@@ -21,7 +21,7 @@ from __future__ import annotations
 from groups import Euclidean
 
 from .piece import Piece, check_factor, check_int, check_number, check_spans
-from .robust import RobustWeights
+from .robust import MAX_SIZE, RobustWeights
 
 __all__ = ["Prior", "NoPrior", "SystemPrior", "RobustSystemPrior", "KinematicPrior"]
 
@@ -95,7 +95,7 @@ class RobustSystemPrior(SystemPrior):
                 "compensated_drive and leave predict to the base class, or use the plain "
                 "system prior."
             )
-        width = check_int("robust system prior: width", width, 1)
+        width = check_int("robust system prior: width", width, 1, high=MAX_SIZE)
         span = check_number("robust system prior: span", span, 1e-12, 1e12)
         self.robust = RobustWeights(system.drive_dim, width, span)
 

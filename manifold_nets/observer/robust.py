@@ -51,6 +51,11 @@ def safe_norm(v: torch.Tensor) -> torch.Tensor:
     return torch.where(positive, torch.where(positive, sq, torch.ones_like(sq)).sqrt(), 0.0 * sq)
 
 
+#: The most channels and steps a weight function may have: the shipped observers use 16 steps;
+#: the bound keeps a file that asks for 10**9 from allocating before it is refused.
+MAX_SIZE = 4096
+
+
 class RobustWeights(nn.Module):
     """``channels`` learned weight functions of ``width`` steps each; see the module docstring.
 
@@ -63,8 +68,10 @@ class RobustWeights(nn.Module):
     def __init__(self, channels: int, width: int = 16, span: float = 4.0):
         super().__init__()
         for name, val in (("channels", channels), ("width", width)):
-            if isinstance(val, bool) or not isinstance(val, int) or val < 1:
-                raise ValueError(f"RobustWeights: {name} must be an integer >= 1, got {val!r}.")
+            if isinstance(val, bool) or not isinstance(val, int) or not 1 <= val <= MAX_SIZE:
+                raise ValueError(
+                    f"RobustWeights: {name} must be an integer in 1 .. {MAX_SIZE}, got {val!r}."
+                )
         self.channels, self.width, self.span = channels, width, check_span(span)
         knots = torch.linspace(0.0, self.span, width).expand(channels, width).clone()
         spacing = self.span / max(width - 1, 1)
