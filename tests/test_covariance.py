@@ -3,6 +3,7 @@ observer's rollout, online and exported steps (one computation), and its trainin
 
 from __future__ import annotations
 
+import inspect
 import math
 from functools import partial
 
@@ -202,3 +203,14 @@ def test_broad_calibration_cuts_sequences_into_windows_without_losing_a_known_st
     assert out.features.shape == (5, 3, 1) and out.known.sum() == known.sum()
     torch.testing.assert_close(out.errors[out.known], errors[known])
     assert not out.known[2, 1:].any()  # the first sequence's padded tail
+
+
+def test_exporting_the_calibrated_step_leaves_the_piece_classes_as_they_were():
+    """torch.export's tracer once patched the measurement's class (its __init__ became the
+    tracer's proxy's) when a module was reachable twice; every later config build failed."""
+    from manifold_nets.observer.piece import PIECES
+
+    test_the_calibrated_step_exports_with_torch_export_and_gives_the_same_covariance()
+    patched = [k for k, c in PIECES.items() if "AttrProxy" in c.__init__.__qualname__]
+    assert patched == []
+    assert "dim" in inspect.signature(Measurement.__init__).parameters

@@ -309,7 +309,8 @@ def test_evaluation_table_and_figure(tmp_path):
                              "training split), got 0."),
         ({"grad_clip": -1.0}, "grad_clip must be > 0 or None (null: no clipping), got -1.0"),
         ({"grad_clip": 0.0}, "grad_clip must be > 0 or None (null: no clipping), got 0.0"),
-        ({"threads": 0}, "threads must be an integer >= 1 or None (null: torch's default), got 0."),
+        ({"threads": 0}, "threads must be an integer >= 1 or None (null: one thread, or "
+                          "OMP_NUM_THREADS when set), got 0."),
     ],
 )
 def test_nonsense_settings_fail_before_any_work(tmp_path, kwargs, message):

@@ -288,22 +288,25 @@ class CalibratedObserver(nn.Module):
 class CalibratedStep(nn.Module):
     """:class:`manifold_nets.deploy.OnlineStep` of the observer, then ``P``:
     ``(x, *state, memory, y[, u]) -> (x_next, *state_next, memory_next, P)`` (``P``
-    ``(B, n, n)``, float64)."""
+    ``(B, n, n)``, float64). Each module sits at one place in it (``step.observer``,
+    ``readout``): ``torch.export``'s non-strict tracer patches a module class reached by two
+    paths, and the patch outlived the export."""
 
     def __init__(self, calibrated: CalibratedObserver):
         super().__init__()
-        self.calibrated = calibrated
         self.step = calibrated.observer.online_step_module()
+        self.readout = calibrated.readout
         self.layers = len(calibrated.observer.core.initial_hidden(1))
 
     def initial_state(self, batch: int = 1):
-        return (*self.step.initial_state(batch), self.calibrated.readout.initial_memory(batch))
+        return (*self.step.initial_state(batch), self.readout.initial_memory(batch))
 
     def forward(self, x: torch.Tensor, *args: torch.Tensor):
         k = self.step.num_hidden  # the observer's state tensors after x, then the memory
         state, memory, rest = args[:k], args[k], args[k + 1 :]
         out = self.step(x, *state, *rest)
         u = rest[1] if len(rest) > 1 else None
-        z = self.calibrated.inputs(out[0], rest[0], u, out[1 : 1 + self.layers])
-        chol, memory = self.calibrated.readout.cholesky(z.unsqueeze(1), memory)
+        z = readout_inputs(self.step.observer, self.readout.source, out[0], rest[0], u,
+                           out[1 : 1 + self.layers])
+        chol, memory = self.readout.cholesky(z.unsqueeze(1), memory)
         return (*out, memory, CovarianceReadout.covariance(chol[:, 0]))
