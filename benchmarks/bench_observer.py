@@ -1,46 +1,48 @@
-"""Speed of the residual observer against an open-loop ``torch.nn.GRU`` of the same size.
+"""Speed of the observer an experiment trains: its closed-loop training step against the fused
+``torch.nn.GRU`` and against the per-step ``GRUCell`` loop of the same size.
 
 Run by hand from the repository root (not by CI)::
 
-    python benchmarks/bench_observer.py                     # 2x128 and 2x512, prints a table
-    python benchmarks/bench_observer.py --write     # also writes benchmarks/results/observer.md
-    python benchmarks/bench_observer.py --sizes 128 --reps 3 --skip-inference   # quick look
+    python benchmarks/bench_observer.py                     # experiment=default, prints a table
+    python benchmarks/bench_observer.py --compile           # also the compiled step
+    python benchmarks/bench_observer.py --profile           # where the closed loop's time goes
+    python benchmarks/bench_observer.py --write run.md      # also writes the tables to run.md
+    python benchmarks/bench_observer.py --experiment paper_cpu --override model.hidden_size=256
 
-What is measured, all float32 networks on the CPU (``--threads``, default 2):
+What is measured, one training step each (forward, backward, gradient clipping, AdamW):
 
-* **train step**: one forward + backward + AdamW step on a batch of 256 sequences of 100 steps
-  (the paper's rigid body: group SO(3) x R^3 x R^3 x R^3, 18 measurements, 12 outputs), for
+* ``closed loop``: the observer of ``configs/experiment/<experiment>`` built by the project's
+  own builders (``build_system``, ``build_observer``: its pieces, sizes and dtypes), rolled out
+  over a batch the system simulates (``--batch`` sequences, default the experiment's
+  ``train.batch_size``, of ``--steps`` steps at the dataset's sigma) and scored by the training
+  loss (``training_losses.batch_loss`` with the experiment's loss and skip), clipped at
+  ``train.grad_clip``, AdamW at ``train.lr`` / ``train.weight_decay``;
+* ``closed loop, compiled`` (``--compile``): the same with ``ResidualObserver.compile_step()``
+  (``train.compile=true``), compiled during the warm-up;
+* ``GRUCell loop``: the open-loop floor of any closed loop, ``num_layers`` ``nn.GRUCell`` s and
+  the ``nn.Linear`` head called step by step over precomputed inputs of the core's input width
+  (a closed loop cannot fuse its input projections over time: each step's input depends on
+  the previous step's output), MSE against a random target;
+* ``nn.GRU (fused)``: ``nn.GRU`` over the whole sequence at once, the same head and loss.
 
-  - ``open-loop nn.GRU``: ``nn.GRU(36, H, 2)`` + ``Linear(H, 12)`` over precomputed inputs,
-    mean squared error against a target (the fused, loop-in-C++ reference: the limit);
-  - ``closed loop, float32 state``: :class:`manifold_nets.observer.ResidualObserver`, the
-    estimate fed back every step and updated on the group (the paper's update rules), loss
-    the embedding MSE; everything float32;
-  - ``closed loop, float64 state``: the same with the group state in float64.
+Every round runs each variant once, in an order shuffled per round (a seeded RNG), so that load
+from other processes falls on all of them alike; wall time and this process's CPU time are
+recorded per run. The table gives each variant's median and interquartile range over
+``--reps`` rounds, and the ratios of the closed loop to each reference taken *within* a round
+(paired), as median and interquartile range. ``--threads`` (default 1, what the CPU training
+configs use) sets torch's thread count.
 
-  The variants run interleaved (A, B, C, A, B, C, ...) so that load from other processes hits
-  them alike; the table gives the median and the minimum over ``--reps`` repetitions and the
-  ratio of medians to the open-loop GRU.
-
-  With ``--compile`` also ``closed loop, float64 state, compiled``
-  (:meth:`ResidualObserver.compile_step`, ``torch.compile``; compiled in the warm-up), and with
-  ``--innovation`` the observer with innovation inputs ``{R: y[0:9], p: y[9:12]}``, eager and
-  compiled (the measurements' first nine entries are rotations).
-
-* **inference**: the observer over 1000 sequences of 1000 steps (``torch.inference_mode``),
-  float32 network, float64 state; the distance of the last estimate from the group, and the
-  same with an all-float32 observer (200 sequences). The untrained network's steps are of
-  random size (the weights are random: its output layer too, which a core the observer makes
-  starts at zero), so the float32 drift is indicative only.
-* **online step latency**: one :meth:`ResidualObserver.step` at batch 1 (median over 1000 steps).
+``--profile`` runs ``torch.profiler`` over one step of the closed loop and of the ``GRUCell``
+loop after the timing and prints the profiler events per time step and the closed loop's
+operators by self CPU time.
 """
 
 from __future__ import annotations
 
 import argparse
-import functools
 import os
 import platform
+import random
 import statistics
 import sys
 import time
@@ -48,193 +50,218 @@ from pathlib import Path
 
 import torch
 
-from groups import SO3, Euclidean, Product
-from manifold_nets.losses import embedding_mse
-from manifold_nets import GRUCore, ResidualObserver
-from manifold_nets.observer import Embedding, GroupUpdate, Innovation, Measurement, Readings
-
-GROUP = Product(SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "b_omega", "b_v"))
-UPDATE = {"b_omega": "absolute", "b_v": "absolute"}
-MEAS = 18
-INNOV = {"R": (0, 9), "p": (9, 12)}  # the innovation inputs of experiment=default / paper_cpu
-COMPILE = False  # --compile: also the observer with its step compiled (torch.compile)
-INNOVATION = False  # --innovation (with --compile): also with innovation inputs
+ROOT = Path(__file__).resolve().parents[1]
 
 
-def _observer(hidden: int, state_dtype=torch.float64, innovation=None) -> ResidualObserver:
-    """The rigid body's observer with a 2 x ``hidden`` GRU (innovation inputs on ``innovation``),
-    all its weights random: the output layer, which starts at zero in a core the observer makes,
-    gets ``nn.Linear``'s initialisation, so that the untrained observer moves (and drifts)."""
-    torch.manual_seed(0)
-    measurement, features = Measurement(MEAS), None
-    if innovation:
-        measurement = Measurement(MEAS, factors=innovation)
-        features = [Embedding(), Readings(), Innovation()]
-    obs = ResidualObserver(
-        GROUP, measurement, functools.partial(GRUCore, hidden_size=hidden, num_layers=2),
-        update=GroupUpdate(UPDATE, state_dtype=state_dtype), features=features,
-    )
-    obs.core.head.reset_parameters()
-    return obs
+def build(experiment: str, overrides: list[str], batch: int | None, steps: int, seed: int):
+    """``(cfg, observer, data, step)``: the experiment's observer and one training step on a
+    simulated batch."""
+    from hydra import compose, initialize_config_dir
 
+    from manifold_nets.builders import build_observer, build_system
+    from manifold_nets.training_losses import batch_loss
+    from manifold_nets.training_settings import param_groups
 
-def _optimizer(params):
-    return torch.optim.AdamW(params, lr=3e-4, weight_decay=0.1)
+    with initialize_config_dir(config_dir=str(ROOT / "configs"), version_base="1.3"):
+        cfg = compose("train", overrides=[f"experiment={experiment}", *overrides])
+    system = build_system(cfg.system)
+    torch.manual_seed(seed)
+    obs = build_observer(system.group, system.measurement_dim, system.input_dim, cfg.model,
+                         dt=getattr(system, "dt", None), system=system)
+    t = cfg.train
+    n = int(batch or t.batch_size)
+    data = system.simulate(n, steps, float(cfg.dataset.sigma), torch.Generator().manual_seed(seed))
+    data.states = data.states.to(obs.state_dtype)
+    opt = torch.optim.AdamW(param_groups(obs, float(t.lr), t.param_lr), lr=float(t.lr),
+                            weight_decay=float(t.weight_decay))
 
-
-def train_step_variants(hidden: int, batch: int, steps: int) -> dict:
-    """``{name: closure}``: one forward + backward + AdamW step each."""
-    g = torch.Generator().manual_seed(0)
-    torch.manual_seed(0)
-    y = torch.randn(batch, steps, MEAS, generator=g)
-    y[..., :9] = SO3().random((batch, steps), generator=g).flatten(-2)  # R^m: a rotation
-    truth = GROUP.random((batch, steps + 1), generator=g, dtype=torch.float64)
-
-    gru = torch.nn.GRU(GROUP.embedding_dim + MEAS, hidden, 2, batch_first=True)
-    head = torch.nn.Linear(hidden, GROUP.tangent_dim)
-    x_open = torch.randn(batch, steps, GROUP.embedding_dim + MEAS, generator=g)
-    t_open = torch.randn(batch, steps, GROUP.tangent_dim, generator=g)
-    opt_open = _optimizer([*gru.parameters(), *head.parameters()])
-
-    def open_loop():
-        out, _ = gru(x_open)
-        loss = ((head(out) - t_open) ** 2).mean()
-        opt_open.zero_grad(set_to_none=True)
+    def step():
+        loss = batch_loss(obs, data, None, t.loss, t.skip_steps)
+        opt.zero_grad(set_to_none=True)
         loss.backward()
-        opt_open.step()
+        if t.grad_clip is not None:
+            torch.nn.utils.clip_grad_norm_(obs.parameters(), t.grad_clip)
+        opt.step()
 
-    def closed(state_dtype, compiled=False, innovation=None):
-        obs = _observer(hidden, state_dtype, innovation)
-        if compiled:
-            obs.compile_step()
-        opt = _optimizer(obs.parameters())
-        target = truth.to(state_dtype)
+    return cfg, obs, data, step
 
-        def run():
-            loss = embedding_mse(GROUP, obs(y), target)
+
+def references(obs, batch: int, steps: int, lr: float, wd: float, clip: float | None, seed: int):
+    """``{name: step}`` of the open-loop references of the observer's core's size."""
+    core = obs.core
+    inp, hid, layers, out = core.input_size, core.hidden_size, core.num_layers, core.output_size
+    g = torch.Generator().manual_seed(seed)
+    dtype = obs.net_dtype
+    x = torch.randn(batch, steps, inp, generator=g, dtype=dtype)
+    xt = x.transpose(0, 1).contiguous()
+    target = torch.randn(batch, steps, out, generator=g, dtype=dtype)
+    torch.manual_seed(seed)
+    gru = torch.nn.GRU(inp, hid, layers, batch_first=True).to(dtype)
+    head = torch.nn.Linear(hid, out).to(dtype)
+    cells = [torch.nn.GRUCell(inp if i == 0 else hid, hid).to(dtype) for i in range(layers)]
+    head2 = torch.nn.Linear(hid, out).to(dtype)
+
+    def trainer(params, loss_fn):
+        params = list(params)
+        opt = torch.optim.AdamW(params, lr=lr, weight_decay=wd)
+
+        def step():
+            loss = loss_fn()
             opt.zero_grad(set_to_none=True)
             loss.backward()
+            if clip is not None:
+                torch.nn.utils.clip_grad_norm_(params, clip)
             opt.step()
 
-        return run
+        return step
 
-    out = {
-        "open-loop nn.GRU": open_loop,
-        "closed loop, float32 state": closed(torch.float32),
-        "closed loop, float64 state": closed(torch.float64),
+    def fused():
+        y, _ = gru(x)
+        return ((head(y) - target) ** 2).mean()
+
+    def per_step():
+        h = [torch.zeros(batch, hid, dtype=dtype) for _ in cells]
+        outs = []
+        for x_k in xt.unbind(0):
+            z = x_k
+            for i, cell in enumerate(cells):
+                h[i] = z = cell(z, h[i])
+            outs.append(head2(z))
+        return ((torch.stack(outs, dim=1) - target) ** 2).mean()
+
+    return {
+        "GRUCell loop": trainer([*(p for c in cells for p in c.parameters()), *head2.parameters()],
+                                per_step),
+        "nn.GRU (fused)": trainer([*gru.parameters(), *head.parameters()], fused),
     }
-    if COMPILE:
-        out["closed loop, float64 state, compiled"] = closed(torch.float64, compiled=True)
-        if INNOVATION:
-            out["closed loop + innovation, float64 state"] = closed(torch.float64, innovation=INNOV)
-            out["closed loop + innovation, float64 state, compiled"] = closed(
-                torch.float64, compiled=True, innovation=INNOV
-            )
-    return out
 
 
-def time_interleaved(fns: dict, reps: int) -> dict[str, list[float]]:
-    for f in fns.values():  # warm-up (allocator, MKL)
+def time_rounds(fns: dict, reps: int, seed: int) -> dict[str, dict[str, list[float]]]:
+    """``{name: {"wall": [...], "cpu": [...]}}``, one entry per round; order shuffled per round."""
+    for f in fns.values():  # warm-up: allocator, compilation
         f()
-    out = {k: [] for k in fns}
+        f()
+    out = {k: {"wall": [], "cpu": []} for k in fns}
+    rng = random.Random(seed)
     for _ in range(reps):
-        for k, f in fns.items():
-            t0 = time.perf_counter()
-            f()
-            out[k].append(time.perf_counter() - t0)
+        names = list(fns)
+        rng.shuffle(names)
+        for k in names:
+            c0, t0 = time.process_time(), time.perf_counter()
+            fns[k]()
+            out[k]["wall"].append(time.perf_counter() - t0)
+            out[k]["cpu"].append(time.process_time() - c0)
     return out
 
 
-def inference_time(
-    hidden: int, n: int, steps: int, state_dtype: torch.dtype = torch.float64
-) -> tuple[float, float]:
-    """Seconds for the observer over ``n`` sequences of ``steps``, and the largest membership error."""
-    obs = _observer(hidden, state_dtype)
-    y = torch.randn(n, steps, MEAS, generator=torch.Generator().manual_seed(1))
-    with torch.inference_mode():
-        obs(y[:8, :10])
-        t0 = time.perf_counter()
-        est = obs(y)
-        dt = time.perf_counter() - t0
-        err = float(GROUP.membership_error(est[:, -1]).max())
-    return dt, err
+def _quartiles(xs: list[float]) -> tuple[float, float, float]:
+    if len(xs) < 2:
+        return xs[0], xs[0], xs[0]
+    q1, q2, q3 = statistics.quantiles(xs, n=4, method="inclusive")
+    return q1, q2, q3
 
 
-def online_latency(hidden: int, steps: int = 1000) -> float:
-    """Median seconds of one ``step`` at batch 1."""
-    obs = _observer(hidden)
-    ys = torch.randn(steps, 1, MEAS)
-    times = []
-    with torch.inference_mode():
-        state = obs.init_state(1)
-        for y in ys:
-            t0 = time.perf_counter()
-            state = obs.step(state, y)
-            times.append(time.perf_counter() - t0)
-    return statistics.median(times[10:])
+def table(res: dict, closed: list[str], refs: list[str]) -> list[str]:
+    lines = [
+        "| variant | wall s, median [q1, q3] | CPU s, median [q1, q3] |",
+        "|---|---:|---:|",
+    ]
+    for k, r in res.items():
+        w, c = _quartiles(r["wall"]), _quartiles(r["cpu"])
+        lines.append(f"| {k} | {w[1]:.3f} [{w[0]:.3f}, {w[2]:.3f}] | "
+                     f"{c[1]:.3f} [{c[0]:.3f}, {c[2]:.3f}] |")
+    lines += ["", "| ratio (paired within each round) | wall, median [q1, q3] | "
+              "CPU, median [q1, q3] |", "|---|---:|---:|"]
+    for a in closed:
+        for b in refs:
+            cells = []
+            for kind in ("wall", "cpu"):
+                ratios = [x / y for x, y in zip(res[a][kind], res[b][kind])]
+                q = _quartiles(ratios)
+                cells.append(f"{q[1]:.2f} [{q[0]:.2f}, {q[2]:.2f}]")
+            lines.append(f"| {a} / {b} | {cells[0]} | {cells[1]} |")
+    return lines
+
+
+def profile(fns: dict, steps: int, top: int = 15) -> list[str]:
+    """Profiler events per time step of each variant, and the first's operators by self CPU."""
+    from torch.profiler import ProfilerActivity
+    from torch.profiler import profile as torch_profile
+
+    lines = []
+    first = None
+    for name, f in fns.items():
+        f()
+        with torch_profile(activities=[ProfilerActivity.CPU]) as prof:
+            f()
+        ev = prof.key_averages()
+        total = sum(e.count for e in ev)
+        lines.append(f"- {name}: {total} profiler events, {total / steps:.0f} per time step")
+        first = first or (name, ev)
+    name, ev = first
+    busy = sum(e.self_cpu_time_total for e in ev)
+    rows = sorted(ev, key=lambda e: e.self_cpu_time_total, reverse=True)[:top]
+    lines += ["", f"{name}, operators by self CPU time (one step under the profiler):", "",
+              "| operator | calls per time step | self CPU % |", "|---|---:|---:|"]
+    for e in rows:
+        lines.append(f"| `{e.key}` | {e.count / steps:.1f} | {100 * e.self_cpu_time_total / busy:.1f} |")
+    return lines
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("--sizes", type=int, nargs="+", default=[128, 512], help="GRU hidden sizes")
-    ap.add_argument("--reps", type=int, default=5)
-    ap.add_argument("--batch", type=int, default=256)
+    ap.add_argument("--experiment", default="default")
+    ap.add_argument("--override", action="append", default=[], help="a hydra override (repeat)")
+    ap.add_argument("--batch", type=int, default=None, help="default: the experiment's")
     ap.add_argument("--steps", type=int, default=100)
-    ap.add_argument("--threads", type=int, default=2)
-    ap.add_argument("--skip-inference", action="store_true")
-    ap.add_argument("--write", action="store_true", help="write benchmarks/results/observer.md")
+    ap.add_argument("--reps", type=int, default=15)
+    ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--compile", action="store_true", help="also the compiled step")
-    ap.add_argument("--innovation", action="store_true", help="with --compile: innovation too")
+    ap.add_argument("--profile", action="store_true", help="profiler events per time step")
+    ap.add_argument("--write", metavar="PATH", default=None,
+                    help="also write the tables to PATH (benchmarks/results/observer.md is put "
+                    "together from such runs, before and after a change)")
     args = ap.parse_args(argv)
-    global COMPILE, INNOVATION
-    COMPILE, INNOVATION = args.compile, args.innovation
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")  # as the commands set it
     torch.set_num_threads(args.threads)
-
+    cfg, obs, data, closed = build(args.experiment, args.override, args.batch, args.steps,
+                                   args.seed)
+    t = cfg.train
+    fns = {"closed loop": closed}
+    if args.compile:
+        _, c_obs, _, c_step = build(args.experiment, args.override, args.batch, args.steps,
+                                    args.seed)
+        c_obs.compile_step()
+        fns["closed loop, compiled"] = c_step
+    refs = references(obs, len(data), args.steps, float(t.lr), float(t.weight_decay),
+                      t.grad_clip, args.seed)
+    fns.update(refs)
+    load0 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    res = time_rounds(fns, args.reps, args.seed)
+    load1 = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
     cmd = " ".join(["benchmarks/bench_observer.py", *(sys.argv[1:] if argv is None else argv)])
-    wait = os.environ.get("OMP_WAIT_POLICY", "(unset)")
-    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else float("nan")
+    core = obs.core
     lines = [
-        "# Observer speed: closed loop against an open-loop nn.GRU",
-        "",
         f"`python {cmd}`",
         "",
-        f"torch {torch.__version__}, {args.threads} thread(s), OMP_WAIT_POLICY={wait}, "
-        f"{platform.processor() or platform.machine()}, load average {load:.1f} at the start; "
-        f"float32 networks, batch {args.batch} x {args.steps} steps, forward + backward + AdamW; "
-        f"median (min) of {args.reps} interleaved repetitions.",
+        f"experiment={args.experiment} {' '.join(args.override)}: {obs.group!r}, core "
+        f"{core.input_size} -> {core.num_layers} x {core.hidden_size} -> {core.output_size}, "
+        f"features {[f.name for f in obs.features]}, batch {len(data)} x {args.steps} steps; "
+        f"torch {torch.__version__}, {args.threads} thread(s), OMP_WAIT_POLICY="
+        f"{os.environ.get('OMP_WAIT_POLICY')}, {platform.machine()}, load average "
+        f"{load0:.1f} at the start and {load1:.1f} at the end; {args.reps} rounds.",
         "",
-        "| GRU | variant | median s/step | min s/step | ratio to nn.GRU (median) |",
-        "|---|---|---:|---:|---:|",
+        *table(res, [k for k in fns if k.startswith("closed")], list(refs)),
     ]
-    for h in args.sizes:
-        res = time_interleaved(train_step_variants(h, args.batch, args.steps), args.reps)
-        ref = statistics.median(res["open-loop nn.GRU"])
-        for name, ts in res.items():
-            med = statistics.median(ts)
-            row = f"| 2x{h} | {name} | {med:.3f} | {min(ts):.3f} | {med / ref:.2f} |"
-            lines.append(row)
-            print(row, flush=True)
-    if not args.skip_inference:
-        lines += [
-            "",
-            "| GRU | inference 1000 x 1000 (s) | max membership error at k=1000, float64 "
-            "state | the same, all float32 | online step, batch 1 (ms) |",
-            "|---|---:|---:|---:|---:|",
-        ]
-        for h in args.sizes:
-            t, err = inference_time(h, 1000, 1000)
-            _, err32 = inference_time(h, 200, 1000, torch.float32)
-            lat = online_latency(h)
-            row = f"| 2x{h} | {t:.1f} | {err:.1e} | {err32:.1e} | {lat * 1e3:.2f} |"
-            lines.append(row)
-            print(row, flush=True)
+    if args.profile:
+        lines += ["", *profile({"closed loop": closed, "GRUCell loop": refs["GRUCell loop"]},
+                               args.steps)]
     text = "\n".join(lines) + "\n"
     print(text)
     if args.write:
-        out = Path(__file__).parent / "results" / "observer.md"
-        out.parent.mkdir(parents=True, exist_ok=True)
-        out.write_text(text)
-        print(f"wrote {out}")
+        Path(args.write).write_text(text)
+        print(f"wrote {args.write}")
     return 0
 
 

@@ -391,6 +391,8 @@ class LieGroup(abc.ABC):
                 f"{y.dtype}; convert one first, e.g. y.to(x.dtype)."
             )
         bx, by = self.batch_shape(x), self.batch_shape(y)
+        if bx == by:  # the common case, without broadcast_shapes' Python (a hot path)
+            return
         try:
             torch.broadcast_shapes(bx, by)
         except RuntimeError:

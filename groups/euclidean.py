@@ -67,6 +67,11 @@ class Euclidean(LieGroup):
         self.check_tangent(v, "rplus")
         return x + v
 
+    def rminus(self, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``y - x``."""
+        self.check_pair(x, y, "rminus")
+        return y - x
+
     def adjoint(self, x: torch.Tensor) -> torch.Tensor:
         """The identity: R^n is abelian."""
         self.check_element(x, "adjoint")

@@ -56,8 +56,11 @@ class SE2(MatrixLieGroup):
         self.check_tangent(v, "exp")
         rx, ry, th = v.unbind(-1)
         t2 = th * th
-        a = nx.sin_over_t(t2)
-        b = th * nx.one_minus_cos_over_t2(t2)
+        # an angle whose square overflows (|theta| >= sqrt(finfo.max)): A = sin(t)/t and
+        # B = (1 - cos t)/t, both within 2/|theta| of 0, are 0 (the rotation is exact)
+        over = torch.isinf(t2)
+        a = torch.where(over, 0.0, nx.sin_over_t(t2))
+        b = torch.where(over, 0.0, th * nx.one_minus_cos_over_t2(t2))
         c, s = torch.cos(th), torch.sin(th)
         o, i = torch.zeros_like(th), torch.ones_like(th)
         return _matrix((c, -s, a * rx - b * ry, s, c, b * rx + a * ry, o, o, i))

@@ -32,11 +32,22 @@ def rotation_and_left_jacobian(w: torch.Tensor) -> tuple[torch.Tensor, torch.Ten
 
     ``R = I + A K + B K^2`` and ``J_l = I + B K + C K^2`` with ``K = skew(w)``, both through
     SO(3)'s ``_quadratic_form``. Used by every pose ``exp``.
+
+    An angle whose square overflows (``|w| >= sqrt(finfo.max)``) is a whole number of turns, as
+    in ``SO3.exp``: ``R = I`` and ``J_l = n n^T`` (``n = w / |w|``; at ``t = 2 pi m``,
+    ``J_l = I + K^2 / t^2``), so a pose keeps the translation along its axis.
     """
     t2 = (w * w).sum(-1)
     a = nx.sin_over_t(t2)
     b = nx.one_minus_cos_over_t2(t2)
     c = nx.t_minus_sin_over_t3(t2)
+    # where t2 overflowed: w scaled by its largest entry (|w| then in [1, sqrt 3]), a = b = 0
+    # (R = I) and c = 1 / |w|^2 (J_l = I + K^2 / |w|^2 = n n^T); elsewhere w / 1 and the same
+    # coefficients, bitwise
+    over = torch.isinf(t2)
+    w = w / torch.where(over, w.abs().amax(-1), 1.0).unsqueeze(-1)
+    a, b = torch.where(over, 0.0, a), torch.where(over, 0.0, b)
+    c = torch.where(over, torch.reciprocal(torch.where(over, (w * w).sum(-1), 1.0)), c)
     return _quadratic_form(w, a, b), _quadratic_form(w, b, c)
 
 

@@ -15,6 +15,7 @@ import math
 import torch
 
 from . import numerics as nx
+from . import so3_kernels as kernels
 from .base import MatrixLieGroup
 
 __all__ = ["SO3", "skew", "unskew", "left_jacobian", "left_jacobian_inverse"]
@@ -80,54 +81,6 @@ def _quaternion_to_matrix(q: torch.Tensor) -> torch.Tensor:
     return torch.stack(m, dim=-1).unflatten(-1, (3, 3))
 
 
-def _matrix_to_quaternion(r: torch.Tensor) -> tuple[torch.Tensor, ...]:
-    """Shepperd's method: the components ``(w, x, y, z)`` of a quaternion of ``r``, unnormalised.
-
-    ``r`` is ``(*batch, 3, 3)``; returns four tensors of shape ``(N,)``, ``N`` the number of
-    matrices (the batch flattened). The four candidates ``4 q_k q`` (k = w, x, y, z) are affine
-    in the entries of ``r``: their ten distinct entries come from one matrix product with a
-    table of 0 and +-1 (each a sum of at most three entries). The candidate with the largest
-    pivot ``4 q_k^2 >= 1`` is kept, so no square root of a small number is taken and the
-    gradient is finite. The result is the unit quaternion times ``4 q_k`` (2 to 4 in absolute
-    value, of either sign): normalise it if you need a unit quaternion.
-
-    Layout, for speed on the CPU: the batch is transposed into rows of length ``N`` once (by the
-    product) and every later kernel works on one contiguous row; the candidate is selected by a
-    tournament of ``lerp`` with 0/1 weights (exact, and branch-free unlike ``torch.where``).
-    """
-    table = torch.tensor(
-        [
-            # m00 m01 m02 m10 m11 m12 m20 m21 m22
-            [1, 0, 0, 0, 1, 0, 0, 0, 1],  # d0 - 1 = 4 w^2 - 1
-            [1, 0, 0, 0, -1, 0, 0, 0, -1],  # d1 - 1 = 4 x^2 - 1
-            [-1, 0, 0, 0, 1, 0, 0, 0, -1],  # d2 - 1 = 4 y^2 - 1
-            [-1, 0, 0, 0, -1, 0, 0, 0, 1],  # d3 - 1 = 4 z^2 - 1
-            [0, 0, 0, 0, 0, -1, 0, 1, 0],  # m21 - m12 = 4 w x
-            [0, 0, 1, 0, 0, 0, -1, 0, 0],  # m02 - m20 = 4 w y
-            [0, -1, 0, 1, 0, 0, 0, 0, 0],  # m10 - m01 = 4 w z
-            [0, 1, 0, 1, 0, 0, 0, 0, 0],  # m10 + m01 = 4 x y
-            [0, 0, 1, 0, 0, 0, 1, 0, 0],  # m02 + m20 = 4 x z
-            [0, 0, 0, 0, 0, 1, 0, 1, 0],  # m21 + m12 = 4 y z
-        ],
-        dtype=r.dtype,
-        device=r.device,
-    )
-    f = torch.mm(table, r.reshape(-1, 9).t())  # (10, N)
-    f[:4] += 1.0
-    d0, d1, d2, d3, wx, wy, wz, xy, xz, yz = f.unbind(0)
-    # argmax of (d0, d1, d2, d3), the first on ties, as three 0/1 weights: 1 beats 0, 3 beats 2,
-    # the pair (2, 3) beats the pair (0, 1).
-    p = f[:4].detach()
-    w01, w23 = torch.sign(p[1::2] - p[0::2]).clamp(min=0.0).unbind(0)  # 1.0 where p1 > p0, ...
-    lo, hi = torch.maximum(p[0::2], p[1::2]).unbind(0)
-    w_hi = torch.sign(hi - lo).clamp(min=0.0)
-
-    def pick(c0, c1, c2, c3):
-        return torch.lerp(torch.lerp(c0, c1, w01), torch.lerp(c2, c3, w23), w_hi)
-
-    return pick(d0, wx, wy, wz), pick(wx, d1, xy, xz), pick(wy, xy, d2, yz), pick(wz, xz, yz, d3)
-
-
 class SO3(MatrixLieGroup):
     """Rotations of R^3 as ``(*batch, 3, 3)`` matrices; tangent: rotation vectors ``(*batch, 3)``."""
 
@@ -139,7 +92,8 @@ class SO3(MatrixLieGroup):
 
     @staticmethod
     def exp_max_norm(dtype: torch.dtype) -> float:
-        """The bound on ``|v|`` below which :meth:`exp` is finite: ``sqrt(finfo(dtype).max)``."""
+        """The bound on ``|v|`` from which :meth:`exp` takes the angle as a whole number of
+        turns (its square overflows): ``sqrt(finfo(dtype).max)``."""
         return math.sqrt(torch.finfo(dtype).max)
 
     def hat(self, v: torch.Tensor) -> torch.Tensor:
@@ -163,45 +117,22 @@ class SO3(MatrixLieGroup):
         the group through it (``benchmarks/bench_so3.py``).
 
         Domain (no value checks here: ``exp`` runs in the observer's exported rollout): NaN in
-        any entry of ``v`` gives NaN in its matrix (NaN in, NaN out, never an error), and so
-        does an angle whose square overflows, ``|v| >= sqrt(finfo(dtype).max)`` (about 1.8e19
-        in float32, 1.3e154 in float64; ``SO3.exp_max_norm(dtype)``). Below that bound the
-        result is finite. Check data from outside with ``torch.isfinite`` or :meth:`check_member`.
+        any entry of ``v`` gives NaN in its matrix (NaN in, NaN out, never an error; so does
+        an infinite entry). A finite angle whose square overflows, ``|v| >=
+        sqrt(finfo(dtype).max)`` (about 1.8e19 in float32, 1.3e154 in float64;
+        ``SO3.exp_max_norm(dtype)``), is taken as a whole number of turns: the result is the
+        identity (the float spacing there is beyond ``2 pi`` by many orders, so the angle
+        modulo ``2 pi`` is not in the input), and the gradient is 0. Every finite input gives a
+        rotation. Check data from outside with ``torch.isfinite`` or :meth:`check_member`.
 
         Layout, for speed on the CPU: the batch is transposed into rows ``x, y, z`` of length
         ``N`` once, the nine terms are computed row by row, and ``R`` is assembled by one
         matrix product with a table of 0 and +-1: each entry of ``R`` is a sum of at most two
-        nonzero terms, so the product rounds it once, like the plain sum.
+        nonzero terms, so the product rounds it once, like the plain sum. While autograd records,
+        it is one node with an analytic backward (:mod:`groups.so3_kernels`).
         """
         self.check_tangent(v, "exp")
-        batch = v.shape[:-1]
-        eye = torch.eye(3, dtype=v.dtype, device=v.device)
-        w = torch.mm(eye, v.reshape(-1, 3).t())  # (3, N): rows x, y, z (a transposing copy)
-        x, y, z = w.unbind(0)
-        sq = w * w
-        t2 = sq.sum(0)
-        b = nx.sin_over_t(t2)
-        c = nx.one_minus_cos_over_t2(t2)
-        cx, cy = c * x, c * y
-        # (9, N), the rows of `table` in order; t2 - v_i^2 = v_j^2 + v_k^2
-        terms = torch.cat(((t2 - sq) * c, torch.stack((cx * y, cx * z, cy * z)), b * w))
-        table = torch.tensor(
-            [
-                # R00 R01 R02 R10 R11 R12 R20 R21 R22
-                [-1, 0, 0, 0, 0, 0, 0, 0, 0],  # c (t2 - x^2)
-                [0, 0, 0, 0, -1, 0, 0, 0, 0],  # c (t2 - y^2)
-                [0, 0, 0, 0, 0, 0, 0, 0, -1],  # c (t2 - z^2)
-                [0, 1, 0, 1, 0, 0, 0, 0, 0],  # c x y
-                [0, 0, 1, 0, 0, 0, 1, 0, 0],  # c x z
-                [0, 0, 0, 0, 0, 1, 0, 1, 0],  # c y z
-                [0, 0, 0, 0, 0, -1, 0, 1, 0],  # b x
-                [0, 0, 1, 0, 0, 0, -1, 0, 0],  # b y
-                [0, -1, 0, 1, 0, 0, 0, 0, 0],  # b z
-            ],
-            dtype=v.dtype,
-            device=v.device,
-        )
-        return torch.addmm(eye.flatten(), terms.t(), table).reshape(*batch, 3, 3)
+        return kernels.exp(v)
 
     def log(self, x: torch.Tensor) -> torch.Tensor:
         """Rotation vector with angle in ``[0, pi]``, through a quaternion and ``atan2``.
@@ -219,16 +150,22 @@ class SO3(MatrixLieGroup):
         :class:`~groups.GroupMembershipError` for such input and name the determinant.
         """
         self.check_element(x, "log")
-        batch = x.shape[:-2]
-        qw, qx, qy, qz = _matrix_to_quaternion(x)  # rows (N,)
-        s2 = torch.addcmul(torch.addcmul(qx * qx, qy, qy), qz, qz)
-        k = nx.atan2_over_s(s2, qw.abs())  # > 0
-        # copysign(k, qw) for k > 0, written with ops that export to ONNX (copysign lowers to
-        # signbit, which has none): 1 / qw keeps the sign bit of qw, -0.0 included (-inf).
-        k = torch.where(torch.reciprocal(qw.detach()) < 0, -k, k)
-        two = 2.0 * torch.eye(3, dtype=x.dtype, device=x.device)
-        # (3, N) -> (N, 3) by a product with 2 I: the transposing copy and the factor 2 (exact).
-        return torch.mm(torch.stack((k * qx, k * qy, k * qz)).t(), two).reshape(*batch, 3)
+        return kernels.log(x)
+
+    def rplus(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """``x exp(v)``; one fused operation (one autograd node) when the batch shapes agree."""
+        self.check_element(x, "rplus")
+        self.check_tangent(v, "rplus")
+        if x.shape[:-2] != v.shape[:-1] or x.dtype != v.dtype:
+            return super().rplus(x, v)
+        return kernels.rplus(x, v)
+
+    def rminus(self, y: torch.Tensor, x: torch.Tensor) -> torch.Tensor:
+        """``log(x^T y)``; one fused operation (one autograd node) when the batch shapes agree."""
+        if y.shape != x.shape:
+            return super().rminus(y, x)
+        self.check_pair(x, y, "rminus")
+        return kernels.rminus(y, x)
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
         self.check_element(x, "embed")

@@ -250,13 +250,16 @@ def test_check_member_validates_atol(atol) -> None:
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64], ids=["float32", "float64"])
 def test_so3_exp_domain_is_documented_and_kept(dtype: torch.dtype) -> None:
-    """NaN in, NaN out; finite below the documented bound sqrt(finfo.max), NaN at and above it.
+    """NaN in, NaN out; below the documented bound sqrt(finfo.max) the rotation by |v|, at and
+    above it (the squared angle overflows) a whole number of turns, the identity (issue #36).
 
     The docstring says: ``NaN in any entry of v gives NaN in its matrix (NaN in, NaN out, never
-    an error), and so does an angle whose square overflows, |v| >= sqrt(finfo(dtype).max)``."""
+    an error). An angle whose square overflows, |v| >= sqrt(finfo(dtype).max) ... is taken as a
+    whole number of turns``."""
     G = SO3()
     doc = " ".join(G.exp.__doc__.split())
     assert "NaN in, NaN out" in doc and "sqrt(finfo(dtype).max)" in doc
+    assert "whole number of turns" in doc
     bound = G.exp_max_norm(dtype)
     assert bound == pytest.approx(1.8e19 if dtype == torch.float32 else 1.3e154, rel=0.05)
     assert "SO3.exp" in (Path(__file__).parents[1] / "docs" / "groups.md").read_text()
@@ -264,7 +267,8 @@ def test_so3_exp_domain_is_documented_and_kept(dtype: torch.dtype) -> None:
     inside = G.exp(0.999 * bound * axis)
     assert bool(torch.isfinite(inside).all())
     G.check_member(inside, atol=1e-4)
-    assert bool(torch.isnan(G.exp(1.001 * bound * axis)).all())
+    eye = torch.eye(3, dtype=dtype).expand(2, 3, 3)
+    assert torch.equal(G.exp(1.001 * bound * axis), eye)
     v = torch.tensor([[math.nan, 0.0, 0.0], [0.1, 0.2, 0.3]], dtype=dtype)
     R = G.exp(v)
     assert bool(torch.isnan(R[0]).all()) and bool(torch.isfinite(R[1]).all())

@@ -133,6 +133,8 @@ class Innovation(Feature):
         return self
 
     def forward(self, view):
+        if view.nu_flat is not None:
+            return view.nu_flat
         return view.nu[0] if len(view.nu) == 1 else torch.cat(view.nu, dim=-1)
 
 

@@ -23,6 +23,9 @@ from dataclasses import dataclass
 
 import torch
 
+from groups.so3_kernels import records
+
+from .fused import fusable_innovations, fused_innovations
 from .piece import Piece, check_factor, check_int, check_number, check_spans
 from .robust import MAX_SIZE, RobustWeights, safe_norm
 
@@ -35,13 +38,15 @@ class StepView:
 
     ``x``: the prediction ``x^-`` ``(B, numel)`` in the state dtype; ``yu``: ``(y, u)``
     ``(B, l + m)`` in the network dtype (measured columns as the core reads them); ``nu``: the
-    innovations ``(B, tangent_dim_f)`` per measured factor, in the network dtype.
+    innovations ``(B, tangent_dim_f)`` per measured factor, in the network dtype; ``nu_flat``
+    (when the measurement made them at once) the same concatenated, ``(B, innovation_dim)``.
     """
 
     x: torch.Tensor
     yu: torch.Tensor
     nu: list[torch.Tensor]
     measurement: Measurement
+    nu_flat: torch.Tensor | None = None
 
     def exact(self) -> StepView:
         """The view had each measured factor been measured exactly at its prediction: the
@@ -87,6 +92,8 @@ class Measurement(Piece):
             for n, (a, b) in self.factors.items()
         ]
         self.innovation_dim = sum(group.factor(n).tangent_dim for n in self.factors)
+        self._widths = [f.tangent_dim for f, _, _ in self.spans]
+        self._fused = fusable_innovations(self)
         return self
 
     def settings(self) -> dict:
@@ -108,6 +115,9 @@ class Measurement(Piece):
     def view(self, x: torch.Tensor, yu: torch.Tensor, measured) -> StepView:
         """The step's view at the prediction ``x`` (flat, state dtype) of ``(y, u)`` ``yu``
         (network dtype) and the measured elements ``measured`` (state dtype)."""
+        if self._fused and records(x):  # one autograd node for them all (.fused)
+            flat = fused_innovations(self, x, measured, yu.dtype)
+            return StepView(x, yu, list(flat.split(self._widths, dim=-1)), self, flat)
         nu = self.innovations(x, measured)
         return StepView(x, yu, [n.to(yu.dtype) for n in nu], self)
 

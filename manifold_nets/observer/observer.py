@@ -35,6 +35,7 @@ from groups import LieGroup
 
 from ..cores import GRUCore, Hidden, RecurrentCore
 from .checks import check_sequences, check_start, check_step_args
+from .compiling import compiled
 from .features import Embedding, Feature, Readings
 from .heads import Head, PlainHead
 from .measurement import Measurement
@@ -225,7 +226,7 @@ class ResidualObserver(nn.Module):
         v, hidden = self.head(self.core, self._features, view, hidden, timed[0])
         for scale, d in zip(self.scales, timed[1:]):
             v = scale(v, d)
-        return self.update(x, v.to(x.dtype)), hidden
+        return self.update(x, v), hidden  # the update casts v to the state dtype
 
     def _features(self, view) -> torch.Tensor:
         return torch.cat([f(view) for f in self.features], dim=-1)
@@ -285,7 +286,7 @@ class ResidualObserver(nn.Module):
     def compile_step(self, **options) -> ResidualObserver:
         """Compiles the step with ``torch.compile`` for rollouts that record gradients (training);
         ``options`` go to ``torch.compile`` (default ``dynamic=False``). Returns ``self``."""
-        self._compiled_step = torch.compile(self.step_unchecked, **{"dynamic": False, **options})
+        self._compiled_step = compiled(self.step_unchecked, **options)  # (.compiling)
         return self
 
     def online_step_module(self) -> nn.Module:

@@ -13,6 +13,7 @@ rule are merged into one block, so the update is a few slices and one ``cat``.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -20,6 +21,9 @@ from dataclasses import dataclass
 import torch
 
 from groups import Euclidean, LieGroup
+from groups.so3_kernels import records
+
+from .fused import fusable_update, fused_update
 
 __all__ = ["UPDATE_RULES", "GroupUpdate"]
 
@@ -35,6 +39,34 @@ class _Block:
     element: slice
     tangent: slice
     rule: str
+
+
+def _absolute_vector(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return v
+
+
+def _flat(factor: LieGroup, t: torch.Tensor) -> torch.Tensor:
+    return t.flatten(-len(factor.element_shape)) if len(factor.element_shape) > 1 else t
+
+
+def _residual(factor: LieGroup, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return _flat(factor, factor.rplus(x.unflatten(-1, factor.element_shape), v))
+
+
+def _absolute(factor: LieGroup, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return _flat(factor, factor.exp(v))
+
+
+def _left(factor: LieGroup, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    return _flat(factor, factor.compose(factor.exp(v), x.unflatten(-1, factor.element_shape)))
+
+
+def _move(factor: LieGroup | None, rule: str):
+    """``(x_f (B, numel_f), v_f (B, tangent_dim_f)) -> x_f'`` of one block (``None``: R^n)."""
+    if factor is None:
+        return _absolute_vector if rule == "absolute" else torch.add
+    return functools.partial({"residual": _residual, "absolute": _absolute, "left": _left}[rule],
+                             factor)
 
 
 class GroupUpdate:
@@ -85,6 +117,11 @@ class GroupUpdate:
                     _Block(None if vec else f, slice(el, el + numel), slice(tan, tan + tdim), rule)
                 )
             el, tan = el + numel, tan + tdim
+        self._sizes = tuple([b.element.stop - b.element.start for b in self.blocks]), tuple(
+            [b.tangent.stop - b.tangent.start for b in self.blocks]
+        )
+        self._moves = [_move(b.factor, b.rule) for b in self.blocks]  # chosen once, not per step
+        self._fused = fusable_update(self)
         return self
 
     def embed(self, x: torch.Tensor) -> torch.Tensor:
@@ -100,23 +137,20 @@ class GroupUpdate:
         return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
 
     def __call__(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """The flat state ``(B, numel)`` moved by ``v`` ``(B, tangent_dim)``, factor by factor."""
-        parts = []
-        for b in self.blocks:
-            vf = v[:, b.tangent]
-            if b.factor is None:
-                new = vf if b.rule == "absolute" else x[:, b.element] + vf
-            else:
-                shape = b.factor.element_shape
-                if b.rule == "absolute":
-                    new = b.factor.exp(vf)
-                elif b.rule == "left":
-                    new = b.factor.compose(b.factor.exp(vf), x[:, b.element].unflatten(-1, shape))
-                else:
-                    new = b.factor.rplus(x[:, b.element].unflatten(-1, shape), vf)
-                new = new.flatten(-len(shape)) if len(shape) > 1 else new
-            parts.append(new)
-        return parts[0] if len(parts) == 1 else torch.cat(parts, dim=-1)
+        """The flat state ``(B, numel)`` moved by ``v`` ``(B, tangent_dim)`` (any dtype: cast to
+        the state's), factor by factor: one autograd node for SO(3) and R^n factors while
+        autograd records (:mod:`.fused`)."""
+        if self._fused and records(x, v):
+            return fused_update(self, x, v)
+        return self.generic(x, v.to(x.dtype))
+
+    def generic(self, x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+        """:meth:`__call__` for any factors, with the factors' own operations."""
+        if len(self._moves) == 1:
+            return self._moves[0](x, v)
+        # split: one backward node for all the blocks (a slice each would add one per block)
+        xs, vs = x.split(self._sizes[0], dim=-1), v.split(self._sizes[1], dim=-1)
+        return torch.cat([move(xf, vf) for move, xf, vf in zip(self._moves, xs, vs)], dim=-1)
 
     def signature(self) -> list[str]:
         return list(self.rules)
