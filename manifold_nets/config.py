@@ -252,6 +252,14 @@ class EvalConfig:
     #: Reference methods evaluated on the same sets, their rows in the same table (not in the
     #: objective), e.g. ``[raw, ekf]``: the raw measurement and the model-based EKF.
     baselines: list[str] = field(default_factory=list)
+    #: Also score the covariances of the estimators that give them (per factor the ANEES and the
+    #: share of errors inside the 3-sigma ellipsoid; docs/calibration.md): the EKF, and the
+    #: learned observer with ``covariance``.
+    calibration: bool = False
+    #: A covariance readout for the learned observer: a ``covariance.pt`` file
+    #: (``covariance_training.save_readout``) or a zoo entry (``zoo:rigid_body/nominal``: its
+    #: ``covariance.pt``). Needs ``calibration=true``.
+    covariance: Optional[str] = None
 
 
 @dataclass

@@ -13,7 +13,12 @@ the steps ``k = skip .. T`` (the paper skips the first 10):
 * the distance of the estimate from the group, ``group.membership_error`` of the *system's*
   group when a system is given (for SO(3) ``max(||R R^T - I||_F, |det R - 1|)``), mean and
   max: an estimator that works off the group (the unconstrained ablation) shows it here;
-* the wall time of the estimation, ``seconds``.
+* the wall time of the estimation, ``seconds``;
+* with ``calibration=True``, for an estimator that also gives covariances
+  (``estimate_with_covariance(data) -> (estimates, covariances)``: the project's EKF, a learned
+  observer with a covariance readout), per factor the ANEES and the share of errors inside the
+  3-sigma ellipsoid (:mod:`manifold_nets.calibration`; steps without a finite covariance, such as
+  a filter's before its start, left out).
 
 :func:`write_table` writes rows as CSV and Markdown; :func:`plot_errors` draws the paper's
 figure (mean error against time per factor, estimate and measurement, and the distance from
@@ -36,6 +41,7 @@ __all__ = [
     "EstimatesNotFinite",
     "EvalResult",
     "ObserverEstimator",
+    "CalibratedEstimator",
     "rollout",
     "evaluate",
 ]
@@ -105,6 +111,64 @@ class ObserverEstimator:
         return rollout(self.model, data, self.batch_size, show_progress=self.progress)
 
 
+class CalibratedEstimator(ObserverEstimator):
+    """A learned observer with a covariance readout
+    (:class:`~manifold_nets.observer.CalibratedObserver`): the observer's estimates, and with
+    :meth:`estimate_with_covariance` its covariances too."""
+
+    def __init__(self, calibrated, name: str = "learned", batch_size: int = 500,
+                 progress: bool = True):
+        super().__init__(calibrated.observer, name, batch_size, progress)
+        self.calibrated = calibrated
+
+    @torch.no_grad()
+    def estimate_with_covariance(self, data: TrajectoryDataset):
+        was = self.calibrated.training
+        self.calibrated.eval()
+        est, cov = [], []
+        try:
+            for s in range(0, len(data), self.batch_size):
+                part = data[torch.arange(s, min(len(data), s + self.batch_size))]
+                inputs = part.inputs if part.inputs.shape[-1] else None
+                e, c = self.calibrated(part.measurements, inputs)
+                est.append(e)
+                cov.append(c)
+        finally:
+            self.calibrated.train(was)
+        return torch.cat(est), torch.cat(cov)
+
+
+def _calibration_columns(group, est, cov, states, skip: int) -> dict[str, float]:
+    """Per factor: ``<f> ANEES`` and ``<f> in 3 sigma %`` over the steps ``>= skip`` whose
+    covariance is finite."""
+    from .calibration import calibration, tangent_errors
+
+    est, cov, states = est[:, skip:], cov[:, skip:].double(), states[:, skip:]
+    known = torch.isfinite(cov).flatten(2).all(-1)
+    safe = torch.where(known[..., None, None], cov, torch.eye(cov.shape[-1], dtype=cov.dtype))
+    xi = tangent_errors(group, est, states)
+    out = {}
+    for name, c in calibration(group, xi, safe, known).items():
+        out[f"{name} ANEES"] = c.anees
+        out[f"{name} in 3 sigma %"] = 100.0 * c.shares[3]
+    return out
+
+
+def _estimate(method, data, estimates, calibration: bool):
+    """``(estimates, covariances or None, seconds)``: given estimates (0 s), or the method's,
+    with its covariances when ``calibration`` and it gives them."""
+    import time
+
+    if estimates is not None:
+        return estimates, None, 0.0
+    t0 = time.perf_counter()
+    if calibration and callable(getattr(method, "estimate_with_covariance", None)):
+        est, cov = method.estimate_with_covariance(data)
+    else:
+        est, cov = method.estimate(data), None
+    return est, cov, time.perf_counter() - t0
+
+
 def _pad_front(t: torch.Tensor, length: int) -> torch.Tensor:
     """``(N, T)`` aligned with ``k = 1..T`` -> ``(N, T+1)`` with NaN at ``k = 0``."""
     if t.shape[1] == length:
@@ -140,6 +204,7 @@ def evaluate(
     skip: int = 10,
     batch_size: int = 500,
     estimates: torch.Tensor | None = None,
+    calibration: bool = False,
 ) -> EvalResult:
     """The table row and curves of ``method`` on ``data`` (see the module docstring).
 
@@ -149,9 +214,8 @@ def evaluate(
     group the estimates should lie on; without one the per-factor errors are computed from the
     estimator's group and there is no measurement column. ``estimates`` skips the estimation
     when already computed (``seconds`` is then 0). NaN/Inf estimates: :class:`EstimatesNotFinite`.
+    ``calibration``: also score the covariances of an estimator that gives them.
     """
-    import time
-
     from .baselines import Estimator
 
     if isinstance(method, ResidualObserver):
@@ -164,9 +228,7 @@ def evaluate(
     n, t = len(data), data.length
     if not 0 <= skip < t:
         raise ValueError(f"skip={skip} must be in [0, T) for sequences of T={t} steps.")
-    t0 = time.perf_counter()
-    est = method.estimate(data) if estimates is None else estimates
-    seconds = time.perf_counter() - t0 if estimates is None else 0.0
+    est, cov, seconds = _estimate(method, data, estimates, calibration)
     expected = (n, t + 1, *method.group.element_shape)
     if tuple(est.shape) != expected:
         raise ValueError(
@@ -208,6 +270,8 @@ def evaluate(
     curves["membership"] = member.mean(0)
     row["membership mean"] = float(member[:, skip:].mean())
     row["membership max"] = float(member[:, skip:].max())
+    if cov is not None:
+        row.update(_calibration_columns(group, est, cov, states, skip))
     row["sequences"] = n
     row["steps"] = t
     return EvalResult(row, curves, skip, seconds)

@@ -3,6 +3,7 @@ errors drawn from the covariance they are scored under."""
 
 from __future__ import annotations
 
+import json
 import math
 
 import pytest
@@ -126,3 +127,64 @@ def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout
     assert (tmp_path / "calibration_nominal.png").stat().st_size > 10_000
     observer, _, _ = load_observer("zoo:rigid_body/nominal")
     load_readout(tmp_path / "nominal_covariance.pt", observer)
+
+
+def test_evaluate_scores_the_covariance_of_an_estimator_that_gives_one():
+    from functools import partial
+
+    from manifold_nets.cores import GRUCore
+    from manifold_nets.evaluation import CalibratedEstimator, evaluate
+    from manifold_nets.observer import (
+        CalibratedObserver,
+        CovarianceReadout,
+        Measurement,
+        ResidualObserver,
+    )
+    from manifold_nets_examples.rigid_body import RigidBody
+
+    system = RigidBody()
+    obs = ResidualObserver(system.group, Measurement(18, factors={"R": [0, 9], "p": [9, 12]}),
+                           core=partial(GRUCore, hidden_size=8, num_layers=1))
+    readout = CovarianceReadout(system.group, 6, "factor", memory=4)
+    readout.set_scale(torch.full((12,), 0.3, dtype=torch.float64))
+    cal = CalibratedObserver(obs, readout)
+    data = system.simulate(5, 20, 0.3, torch.Generator().manual_seed(0))
+    plain = evaluate(CalibratedEstimator(cal, batch_size=2), data, system, skip=5)
+    assert "R ANEES" not in plain.row  # only when asked
+    scored = evaluate(CalibratedEstimator(cal, batch_size=2), data, system, skip=5,
+                      calibration=True)
+    with torch.no_grad():
+        est, cov = cal(data.measurements)
+    want = calibration(system.group, tangent_errors(system.group, est[:, 5:], data.states[:, 5:]),
+                       cov[:, 5:])
+    for f in ("R", "p", "b_omega", "b_v"):
+        assert scored.row[f"{f} ANEES"] == pytest.approx(want[f].anees)
+        assert scored.row[f"{f} in 3 sigma %"] == pytest.approx(100 * want[f].shares[3])
+    assert scored.row["R est"] == plain.row["R est"]
+
+
+def test_the_evaluate_command_scores_the_learned_covariance_and_refuses_it_without_calibration(
+    tmp_path,
+):
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).parents[1]
+    base = [sys.executable, "-m", "manifold_nets.cli.evaluate", "experiment=paper_cpu_prior",
+            "eval.checkpoint=zoo:rigid_body/nominal", "eval.covariance=zoo:rigid_body/nominal",
+            "eval.sigmas=[0.3]", "eval.num_sequences=3", "eval.length=30", "eval.plots=false",
+            "eval.baselines=[]", "eval.test_split=false", f"dataset.cache_dir={tmp_path / 'data'}",
+            f"hydra.run.dir={tmp_path / 'run'}"]
+    env = {**os.environ, "PYTHONPATH": str(root)}
+    out = subprocess.run([*base, "eval.calibration=true"], capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert out.returncode == 0, out.stderr[-3000:]
+    row = json.loads((tmp_path / "run" / "results" / "metrics.json").read_text())["table"][0]
+    assert math.isfinite(row["R ANEES"]) and 0 <= row["R in 3 sigma %"] <= 100
+    refused = subprocess.run([*base, f"hydra.run.dir={tmp_path / 'run2'}"], capture_output=True,
+                             text=True, env=env, timeout=300)
+    assert refused.returncode != 0
+    assert "is scored only with eval.calibration=true" in refused.stdout + refused.stderr
+    assert not (tmp_path / "run2" / "results").exists()  # refused before any work

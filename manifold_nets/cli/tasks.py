@@ -38,7 +38,8 @@ from manifold_nets.builders import (
 from manifold_nets.checkpoint import load_checkpoint, load_weights, resolve_checkpoint
 from manifold_nets.config import MethodConfig, ModelConfig
 from manifold_nets.datasets import inference_data, training_data
-from manifold_nets.evaluation import ObserverEstimator, evaluate as evaluate_estimator
+from manifold_nets.evaluation import CalibratedEstimator, ObserverEstimator
+from manifold_nets.evaluation import evaluate as evaluate_estimator
 from manifold_nets.objective import objective_value, parse_objective
 from manifold_nets.observer import ResidualObserver
 from manifold_nets.reporting import plot_errors, write_table
@@ -114,10 +115,42 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
             f"data_file={cfg.data_file!r} is a file, which has no simulator; set "
             "train.stream=false to train on the file, or drop data_file to simulate."
         )
+    _check_covariance(cfg)
     if cfg.method.name == "untrained" and cfg.eval.checkpoint:
         raise ValueError(
             "method=untrained evaluates the observer at its initialisation; it cannot load "
             f"eval.checkpoint={cfg.eval.checkpoint!r} (use method=learned for that)."
+        )
+
+
+def _covariance_file(cfg: DictConfig) -> Path:
+    """``eval.covariance`` as a file: a path, or a zoo entry's ``covariance.pt``."""
+    text = str(cfg.eval.covariance)
+    if text.startswith("zoo:"):
+        from manifold_nets.plugins import locate
+
+        return locate(text) / "covariance.pt"
+    return Path(absolute(text))
+
+
+def _check_covariance(cfg: DictConfig) -> None:
+    if not cfg.eval.covariance:
+        return
+    if not cfg.eval.calibration:
+        raise ValueError(
+            f"eval.covariance={cfg.eval.covariance!r} is scored only with eval.calibration=true; "
+            "set it (or drop eval.covariance)."
+        )
+    if cfg.method.name != "learned" or cfg.method.target:
+        raise ValueError(
+            f"eval.covariance is a readout of the learned observer's errors; method="
+            f"{cfg.method.name!r} has its own covariance or none (drop eval.covariance)."
+        )
+    path = _covariance_file(cfg)
+    if not path.is_file():
+        raise ValueError(
+            f"eval.covariance={cfg.eval.covariance!r}: no covariance readout at {path}; give a "
+            "covariance.pt (docs/calibration.md) or a zoo entry that ships one."
         )
 
 
@@ -343,6 +376,13 @@ def _estimator(cfg: DictConfig, system, model: ResidualObserver | None, metrics:
             )
             log.info("evaluating %s (epoch %s)", path, ckpt["epoch"])
         est = ObserverEstimator(model, label, cfg.train.eval_batch_size, cfg.eval.progress)
+        if cfg.eval.covariance:
+            from manifold_nets.covariance_training import load_readout
+
+            path = _covariance_file(cfg)
+            est = CalibratedEstimator(load_readout(path, model), label,
+                                      cfg.train.eval_batch_size, cfg.eval.progress)
+            metrics["covariance"] = str(path)
         return lambda sigma: est
     factory = build_estimator_factory(system, cfg.method)
     metrics["method_params"] = dict(cfg.method.params)
@@ -394,7 +434,8 @@ def evaluate(
         data = inference_data(
             system, dataset, cfg.eval, sigma, cache_dir=absolute(dataset.cache_dir)
         )
-        r = evaluate_estimator(estimator(sigma), data, system, skip=cfg.eval.skip_steps)
+        r = evaluate_estimator(estimator(sigma), data, system, skip=cfg.eval.skip_steps,
+                               calibration=cfg.eval.calibration)
         r.row = {
             "sigma": sigma,
             "method": method,
@@ -411,7 +452,8 @@ def evaluate(
             except ValueError as err:  # e.g. a filter at sigma 0: no row, and why
                 log.info("eval.baselines: no %s row at sigma %g (%s)", name, sigma, err)
                 continue
-            b = evaluate_estimator(est, data, system, skip=cfg.eval.skip_steps)
+            b = evaluate_estimator(est, data, system, skip=cfg.eval.skip_steps,
+                                   calibration=cfg.eval.calibration)
             reference_rows.append({"sigma": sigma, "method": name,
                                    **{k: v for k, v in b.row.items() if k != "sigma"},
                                    "seconds": b.seconds,
