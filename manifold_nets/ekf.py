@@ -50,10 +50,11 @@ Jacobians). Several times faster, and checked against autograd in the tests.
 What a step costs (the time loop of small batches is the number of torch operations): the
 covariances ``Q``, ``R_n``, ``Q_e`` are read once per run (:meth:`ErrorStateEKF.constants`),
 one Cholesky solve gives the NIS and the gain together, and the Joseph form and the reset are
-one sandwich, ``(J A) P (J A)^T + (J K) R (J K)^T`` with ``J A = J - (J K) H``. ``P^-`` is
-symmetrised by :meth:`~ErrorStateEKF.predict` but not inside :meth:`~ErrorStateEKF.step` (the
-update reads one triangle of ``S`` and symmetrises ``P^+``). ``compile=True`` runs the step as
-one ``torch.compile`` graph. ``benchmarks/results/ekf.md`` has the measurements.
+one sandwich, ``(J A) P (J A)^T + (J K) R (J K)^T`` with ``J A = J - (J K) H`` (by selection
+where ``H`` is rows of the identity: ``FilterModel.measured_states``). ``P^-`` is symmetrised by
+:meth:`~ErrorStateEKF.predict`, not in :meth:`~ErrorStateEKF.step` (the update reads one
+triangle of ``S`` and symmetrises ``P^+``). ``compile=True``: the step as one ``torch.compile``
+graph, its kernels called from C++. ``benchmarks/results/ekf.md`` has the measurements.
 
 The measurement is compared through ``residual`` (default: the system's
 :meth:`~manifold_nets.system.System.measurement_residual`, itself by default the plain difference
@@ -70,6 +71,7 @@ this module is the filter.
 
 from __future__ import annotations
 
+import logging
 import math
 import time
 from typing import NamedTuple
@@ -99,6 +101,12 @@ __all__ = [
 ]
 
 _JACOBIANS = ("autograd", "analytic")
+# the compiled step's kernels called from generated C++, not Python (batch 1: about 2x faster)
+_COMPILE_OPTIONS = {"cpp_wrapper": True}
+
+
+def _no_shim_note(record: logging.LogRecord) -> bool:  # inductor's note that it then calls
+    return "linalg_cholesky_ex" not in record.getMessage()  # cholesky_ex by a proxy: as meant
 
 
 class EKFState(NamedTuple):
@@ -191,7 +199,7 @@ class ErrorStateEKF:
     whose first innovations are large because it is (gated, it may converge too slowly and lock
     onto a wrong state). ``compile``: run each step as one ``torch.compile`` graph (analytic
     Jacobians only; a one-off compilation of tens of seconds, then fewer, fused operations per
-    step: worth it for long runs of small batches, see ``benchmarks/results/ekf.md``).
+    step: faster than eager at every batch measured, ``benchmarks/results/ekf.md``).
     """
 
     def __init__(
@@ -236,6 +244,7 @@ class ErrorStateEKF:
             )
         self.compile = bool(compile)
         self._compiled = None
+        self._selection = model.measured_slice() if jacobians == "analytic" else None
         self.name = "ekf"
 
     # ------------------------------------------------------------------ Jacobians
@@ -366,8 +375,13 @@ class ErrorStateEKF:
             nu = m.residual(m.observation(y), z_hat)
             H, M = self.measurement_jacobians(x, drive, z_hat, nu.shape[-1])
         Rn = c.Rn if M is None else _sandwich(M, c.Rn)
-        PHt = matmul(P, H.transpose(-1, -2))
-        HPHt = matmul(H, PHt)
+        sel = self._selection
+        if sel is None:
+            PHt = matmul(P, H.transpose(-1, -2))
+            HPHt = matmul(H, PHt)
+        else:  # H = I[sel]: P H^T is P's columns sel, H P H^T their rows sel
+            PHt = P[..., sel]
+            HPHt = PHt[..., sel, :]
         nu_col = nu.unsqueeze(-1)
         rhs = torch.cat((nu_col, PHt.transpose(-1, -2)), -1)  # [nu | H P]
         X, failed = _solve(HPHt + Rn, rhs)  # S^-1 [nu | H P]
@@ -396,7 +410,10 @@ class ErrorStateEKF:
             J = c.eye
         else:
             K = matmul(J, K)
-        JA = _minus_product(J, K, H)
+        if sel is None:
+            JA = _minus_product(J, K, H)
+        else:  # (J K) H: J K in the columns sel, zeros elsewhere
+            JA = J - torch.nn.functional.pad(K, (sel.start, J.shape[-1] - sel.stop))
         return x_new, _symmetric(_sandwich(JA, P, _sandwich(K, Rn))), nis, failed
 
     def _step(self, x, P, y, u, gated, c):
@@ -422,7 +439,9 @@ class ErrorStateEKF:
         step = self._step
         if self.compile:
             if self._compiled is None:
-                self._compiled = torch.compile(self._step, dynamic=False)
+                logging.getLogger("torch._inductor.ir").addFilter(_no_shim_note)
+                options = _COMPILE_OPTIONS
+                self._compiled = torch.compile(self._step, dynamic=False, options=options)
             step = self._compiled
         x, P, nis, failed = step(state.x, state.P, y, u, gated, c)
         _check_factored(failed)
@@ -460,27 +479,21 @@ class ErrorStateEKF:
             )
         dtype, device = measurements.dtype, measurements.device
         state = self.init(n_seq, dtype, device, x0, P0)
-        est = measurements.new_empty(n_seq, t + 1, *self.group.element_shape)
-        cov = None
-        if return_covariances:
-            n = self.group.tangent_dim
-            cov = measurements.new_empty(n_seq, t + 1, n, n)
-            cov[:, 0] = state.P
-        nis = measurements.new_empty(n_seq, t)
-        est[:, 0] = state.x
         consts = self.constants(dtype, device)
+        xs, Ps, nis = [state.x], [state.P], []  # stacked after the loop: no copy per step
         t0 = time.perf_counter()
-        with torch.inference_mode():  # the step's tensors are local; est, cov, nis are not
+        with torch.inference_mode():  # the step's tensors are local, the stacks made outside
+            ys, us = measurements.unbind(1), inputs.unbind(1)
             steps = progress(range(t), desc=f"{self.name} steps", enabled=self.progress, delay=2.0)
             for k in steps:
-                gated = k >= self.gate_after
-                state, nis[:, k] = self.step(
-                    state, measurements[:, k], inputs[:, k], gated, consts
-                )
-                est[:, k + 1] = state.x
-                if cov is not None:
-                    cov[:, k + 1] = state.P
-        return FilterResult(est, cov, nis, time.perf_counter() - t0)
+                state, nis_k = self.step(state, ys[k], us[k], k >= self.gate_after, consts)
+                xs.append(state.x)
+                nis.append(nis_k)
+                if return_covariances:
+                    Ps.append(state.P)
+        nis = torch.stack(nis, 1) if nis else measurements.new_empty(n_seq, 0)
+        cov = torch.stack(Ps, 1) if return_covariances else None
+        return FilterResult(torch.stack(xs, 1), cov, nis, time.perf_counter() - t0)
 
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
         """Estimates ``(N, T+1, *element_shape)`` on ``data`` (the baselines' common interface)."""

@@ -55,6 +55,11 @@ class FilterModel(abc.ABC):
     input_dim: int = 0
     process_noise_dim: int
     measurement_noise_dim: int
+    #: ``slice(a, b)`` where the analytic ``H`` is the rows ``a .. b-1`` of the identity (the
+    #: update measures that part of the error state as it is: a pose sensor): the analytic
+    #: filter then takes ``P H^T``, ``H P H^T`` and ``K H`` by selection, not as products, and
+    #: ignores the ``H`` of :meth:`linearize_measurement`. ``None`` (default): a general ``H``.
+    measured_states: slice | None = None
 
     @abc.abstractmethod
     def drive(
@@ -104,6 +109,14 @@ class FilterModel(abc.ABC):
         besides ``G Q G^T``: the random walk of a bias the model lets drift. Default ``None``:
         none (a constant bias)."""
         return None
+
+    def measured_slice(self) -> slice | None:
+        """:attr:`measured_states` as ``slice(start, stop)`` in the tangent space, checked."""
+        sel, n = self.measured_states, self.group.tangent_dim
+        if sel is not None and (not isinstance(sel, slice) or sel.step not in (None, 1)
+                                or len(range(n)[sel]) == 0):  # fmt: skip
+            raise ValueError(f"measured_states must be a non-empty slice or None, got {sel!r}.")
+        return None if sel is None else slice(*sel.indices(n)[:2])
 
     # optional analytic Jacobians (jacobians="analytic")
 

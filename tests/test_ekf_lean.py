@@ -136,6 +136,26 @@ def test_one_pass_linearisations_equal_the_separate_methods():
     torch.testing.assert_close(x_new, system.group.rplus(x_pred, delta), atol=1e-14, rtol=0)
     auto = ErrorStateEKF(model).reset_jacobian(x_pred, delta, x_new)
     torch.testing.assert_close(J, auto, atol=1e-12, rtol=0)
+    # measured_states = slice(0, 6): H is those rows of the identity, as the filter assumes
+    sel = ErrorStateEKF(model, jacobians="analytic")._selection
+    assert sel == slice(0, 6) and torch.equal(H, torch.eye(12, dtype=F64)[sel])
+
+
+def test_measured_states_is_checked():
+    model = RigidBodyEKF(RigidBody(), 0.3).model
+    for bad in (slice(0, 6, 2), slice(6, 6), (0, 6)):
+        model.measured_states = bad
+        with pytest.raises(ValueError, match="measured_states"):
+            ErrorStateEKF(model, jacobians="analytic")
+    model.measured_states = None  # the general H: the same filter (H's rows are exact)
+    ekf = ErrorStateEKF(model, jacobians="analytic", progress=False)
+    del model.measured_states
+    lean = ErrorStateEKF(model, jacobians="analytic", progress=False)
+    assert ekf._selection is None and lean._selection == slice(0, 6)
+    y = RigidBody().simulate(3, 20, 0.3, gen(5)).measurements
+    a, b = ekf.filter(y, return_covariances=True), lean.filter(y, return_covariances=True)
+    torch.testing.assert_close(a.estimates, b.estimates, atol=1e-13, rtol=0)
+    torch.testing.assert_close(a.covariances, b.covariances, atol=1e-13, rtol=0)
 
 
 ANGLES = [0.0, 1e-8, 1e-5, 3e-3, 1e-2, 0.3, 1.0, 2.0, math.pi - 1e-7, math.pi, 3.2, 3.3, 7.0]

@@ -128,6 +128,7 @@ class RigidBodyFilterModel(BiasedReadingsFilterModel):
     system_type = RigidBody
     measurement_noise_dim = 6  # (w1, w2): the measured pose
     process_noise_dim = 6  # (w3, w4): the gyro and velocity readings
+    measured_states = slice(0, 6)  # H = [I_6 | 0]: the update measures the pose's error
 
     def __init__(
         self,
