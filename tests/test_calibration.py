@@ -175,14 +175,16 @@ def test_the_evaluate_command_scores_the_learned_covariance_and_refuses_it_witho
     base = [sys.executable, "-m", "manifold_nets.cli.evaluate", "experiment=paper_cpu_prior",
             "eval.checkpoint=zoo:rigid_body/nominal", "eval.covariance=zoo:rigid_body/nominal",
             "eval.sigmas=[0.3]", "eval.num_sequences=3", "eval.length=30", "eval.plots=false",
-            "eval.baselines=[]", "eval.test_split=false", f"dataset.cache_dir={tmp_path / 'data'}",
+            "eval.baselines=[ekf]", "eval.test_split=false", f"dataset.cache_dir={tmp_path / 'data'}",
             f"hydra.run.dir={tmp_path / 'run'}"]
     env = {**os.environ, "PYTHONPATH": str(root)}
     out = subprocess.run([*base, "eval.calibration=true"], capture_output=True, text=True,
                          env=env, timeout=300)
     assert out.returncode == 0, out.stderr[-3000:]
-    row = json.loads((tmp_path / "run" / "results" / "metrics.json").read_text())["table"][0]
-    assert math.isfinite(row["R ANEES"]) and 0 <= row["R in 3 sigma %"] <= 100
+    metrics = json.loads((tmp_path / "run" / "results" / "metrics.json").read_text())
+    for row in (metrics["table"][0], metrics["references"][0]):  # the learned observer, the EKF
+        assert math.isfinite(row["R ANEES"]) and 0 <= row["R in 3 sigma %"] <= 100, row
+    assert metrics["references"][0]["method"] == "ekf"
     refused = subprocess.run([*base, f"hydra.run.dir={tmp_path / 'run2'}"], capture_output=True,
                              text=True, env=env, timeout=300)
     assert refused.returncode != 0

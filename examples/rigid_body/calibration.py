@@ -51,7 +51,7 @@ from manifold_nets.threads import use_threads
 from .ekf_estimator import RigidBodyEKF
 from .mismatch import MismatchedRigidBody
 
-__all__ = ["CASES", "ekf_with_covariance", "main"]
+__all__ = ["CASES", "main"]
 
 #: case -> (zoo entry, system overrides of MismatchedRigidBody, the case whose readout it uses)
 CASES = {
@@ -63,20 +63,6 @@ CASES = {
 }
 SIGMAS = (0.1, 0.2, 0.3, 0.4, 0.5)
 SKIP = 10
-
-
-def ekf_with_covariance(system, sigma: float, data) -> tuple[torch.Tensor, torch.Tensor]:
-    """The nominal EKF's estimates ``(N, T+1, 18)`` and covariances ``(N, T+1, 12, 12)`` (NaN
-    before its start at step 5)."""
-    ekf = RigidBodyEKF(system, sigma)
-    y, m = data.measurements, ekf.init_steps
-    x, P = ekf.start_belief(y[:, :m])
-    res = ekf.ekf.filter(y[:, m:], x0=x, P0=P, return_covariances=True)
-    n_el = ekf.group.element_shape[0]
-    est = torch.cat([system.group.identity((len(y), m), dtype=y.dtype), res.estimates[..., :n_el]], 1)
-    n = system.group.tangent_dim
-    cov = torch.full((len(y), m, n, n), float("nan"), dtype=y.dtype)
-    return est, torch.cat([cov, res.covariances[..., :n, :n]], 1)
 
 
 def _system(entry: str, overrides: dict | None):
@@ -192,7 +178,7 @@ def main(argv=None) -> None:
             data = _sim(system, args.eval, args.length, sigma, 7)
             with torch.no_grad():
                 learned = cal(data.measurements)
-                ekf = ekf_with_covariance(system, sigma, data)
+                ekf = RigidBodyEKF(system, sigma).estimate_with_covariance(data)
             results["cases"][case][str(sigma)] = {
                 "learned": _row(system.group, *learned, data.states),
                 "ekf": _row(system.group, *ekf, data.states),

@@ -175,23 +175,36 @@ class RigidBodyEKF:
         (:class:`~.correlated_noise.CorrelatedNoiseEKF`) extends it."""
         return initialize_from_measurements(self.system, head, self.model.sigma)
 
+    def estimate_with_covariance(self, data: TrajectoryDataset) -> tuple[torch.Tensor, torch.Tensor]:
+        """The estimates ``(N, T+1, 18)`` and the filter's covariances of the system's error
+        ``(N, T+1, 12, 12)`` (the right perturbation, ``docs/calibration.md``), NaN before the
+        filter's start at step ``init_steps`` (the raw measurements carry no covariance)."""
+        return self._run(data, covariances=True)
+
     def estimate(self, data: TrajectoryDataset) -> torch.Tensor:
         """Estimates ``(N, T+1, 18)``: the system's state (a filter's extra states left out)."""
-        y = data.measurements
-        m = self.init_steps
-        n = self.group.element_shape[0]
+        return self._run(data, covariances=False)[0]
+
+    def _run(self, data: TrajectoryDataset, covariances: bool):
+        y, m = data.measurements, self.init_steps
+        n_el, n = self.group.element_shape[0], self.group.tangent_dim
         if m == 0:
-            res = self.ekf.filter(y)
+            res = self.ekf.filter(y, return_covariances=covariances)
             self.seconds = res.seconds
-            return res.estimates[..., :n]
+            cov = res.covariances[..., :n, :n] if covariances else None
+            return res.estimates[..., :n_el], cov
         if y.shape[1] < m:
             raise ValueError(f"sequences of {y.shape[1]} steps are shorter than init_steps={m}.")
         x, P = self.start_belief(y[:, :m])
-        res = self.ekf.filter(y[:, m:], x0=x, P0=P)
+        res = self.ekf.filter(y[:, m:], x0=x, P0=P, return_covariances=covariances)
         self.seconds = res.seconds
         head = self.system.state_from_measurement(y[:, : m - 1])
         x0 = self.group.identity((len(y), 1), dtype=y.dtype, device=y.device)
-        return torch.cat((x0, head, res.estimates[..., :n]), dim=1)
+        est = torch.cat((x0, head, res.estimates[..., :n_el]), dim=1)
+        if not covariances:
+            return est, None
+        nan = y.new_full((len(y), m, n, n), float("nan"))  # steps 0 .. m-1: no filter yet
+        return est, torch.cat((nan, res.covariances[..., :n, :n]), dim=1)
 
 
 #: The EKF's noise levels searched by :func:`tune_ekf_noise`: the readings' and the pose's noise
