@@ -175,7 +175,7 @@ def load_readout(path, observer: ResidualObserver):
 
     from .checkpoint import CheckpointError, load_state
     from .observer import CalibratedObserver
-    from .observer.covariance import SOURCES, STRUCTURES, input_width
+    from .observer.covariance import MAX_MEMORY, SOURCES, STRUCTURES, input_width
 
     path = Path(path)
     if not path.is_file():
@@ -191,23 +191,19 @@ def load_readout(path, observer: ResidualObserver):
     sig, state = ckpt.get("signature"), ckpt.get("model")
     if not isinstance(sig, dict) or not isinstance(state, dict):
         raise CheckpointError(f"{path}: the signature or the weights are missing.")
-    source = sig.get("source")
-    want = {
-        "type": "cholesky", "group": repr(observer.group),
-        "source": source if source in SOURCES else "residual",
-        "width": input_width(observer, source) if source in SOURCES else None,
-        "structure": sig.get("structure") if sig.get("structure") in STRUCTURES else "factor",
-        "memory": sig.get("memory") if isinstance(sig.get("memory"), int)
-        and not isinstance(sig.get("memory"), bool) and 0 <= sig.get("memory") <= 4096 else -1,
-    }
-    if sig != want:
+    # what the file may choose, checked; the rest must be what this observer fixes
+    source, structure, memory = sig.get("source"), sig.get("structure"), sig.get("memory")
+    choices_ok = (source in SOURCES and structure in STRUCTURES and type(memory) is int
+                  and 0 <= memory <= MAX_MEMORY)
+    want = {"type": "cholesky", "group": repr(observer.group), "source": source,
+            "structure": structure, "memory": memory,
+            "width": input_width(observer, source) if source in SOURCES else None}
+    if not choices_ok or sig != want:
         diff = sorted(k for k in set(sig) | set(want) if sig.get(k) != want.get(k))
         raise CheckpointError(
-            f"{path}: the readout does not fit this observer ({', '.join(diff)} differ: "
-            f"{ {k: sig.get(k) for k in diff} } against { {k: want.get(k) for k in diff} })."
+            f"{path}: the readout does not fit this observer (its signature {sig!r}; "
+            f"{', '.join(diff) or 'source, structure or memory'} differ from {want!r})."[:2000]
         )
-    readout = CovarianceReadout(
-        observer.group, want["width"], want["structure"], want["memory"], want["source"]
-    )
+    readout = CovarianceReadout(observer.group, want["width"], structure, memory, source)
     load_state(readout, {"model": state}, path)
     return CalibratedObserver(observer, readout)

@@ -21,6 +21,7 @@ Writes ``OUT/broad_calibration.md``, ``.json`` and the readout ``OUT/covariance.
 from __future__ import annotations
 
 import argparse
+import sys
 import json
 from pathlib import Path
 
@@ -138,7 +139,7 @@ def main(argv=None) -> None:
                      f"{100 * r['in_2sigma']:.1f} % | {100 * r['in_3sigma']:.1f} % |")
     lines += ["| Gaussian | | 1 | 19.9 % | 73.9 % | 97.1 % |", "",
               "Command: `python -m manifold_nets_examples.broad.calibration " + " ".join(
-                  argv if argv is not None else __import__("sys").argv[1:]) + "`", ""]
+                  argv if argv is not None else sys.argv[1:]) + "`", ""]
     write_text_atomic(out / "broad_calibration.md", "\n".join(lines))
     print("\n".join(lines))
 

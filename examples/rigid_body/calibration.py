@@ -30,6 +30,7 @@ entry serves both) and the nominal readout.
 from __future__ import annotations
 
 import argparse
+import sys
 import json
 from pathlib import Path
 
@@ -160,7 +161,7 @@ def main(argv=None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results = {"command": "python -m manifold_nets_examples.rigid_body.calibration "
-               + " ".join(argv if argv is not None else __import__("sys").argv[1:]),
+               + " ".join(argv if argv is not None else sys.argv[1:]),
                "cases": {}, "history": {}}
     readouts = {}
     for case in args.cases:

@@ -55,6 +55,8 @@ __all__ = [
 ]
 
 STRUCTURES = ("diagonal", "factor", "joint")
+#: The widest memory a readout may have (the shipped ones: 32); a file asking for more is refused.
+MAX_MEMORY = 4096
 SOURCES = ("residual", "hidden", "readings")
 
 
@@ -103,9 +105,9 @@ def _mask(group: LieGroup, structure: str) -> torch.Tensor:
     return m.tril()
 
 
-def _check_int(name, v, lo):
-    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= 16384:
-        raise ValueError(f"covariance: {name} must be an integer in [{lo}, 16384], got {v!r}.")
+def _check_int(name, v, lo, hi):
+    if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+        raise ValueError(f"covariance: {name} must be an integer in [{lo}, {hi}], got {v!r}.")
 
 
 class CovarianceReadout(nn.Module):
@@ -126,8 +128,8 @@ class CovarianceReadout(nn.Module):
             raise ValueError(f"covariance: structure must be one of {STRUCTURES}, got {structure!r}.")
         if source not in SOURCES:
             raise ValueError(f"covariance: source must be one of {SOURCES}, got {source!r}.")
-        _check_int("width", width, 1)
-        _check_int("memory", memory, 0)
+        _check_int("width", width, 1, 16384)
+        _check_int("memory", memory, 0, MAX_MEMORY)
         self.group, self.structure, self.memory, self.source = group, structure, memory, source
         self.width, self.n = width, group.tangent_dim
         rows, cols = torch.nonzero(_mask(group, structure), as_tuple=True)
