@@ -61,8 +61,10 @@ def _axiom_params() -> list:
 
 
 @pytest.mark.parametrize("group, dtype, batch_shape, prop", _axiom_params())
-def test_axiom(group: LieGroup, dtype: torch.dtype, batch_shape: tuple, prop: str) -> None:
-    result = CHECKS[prop](group, dtype=dtype, batch_shape=batch_shape, grid=batch_shape == ())
+def test_axiom(group: LieGroup, dtype: torch.dtype, batch_shape: tuple, prop: str, device) -> None:
+    result = CHECKS[prop](
+        group, dtype=dtype, batch_shape=batch_shape, grid=batch_shape == (), device=device
+    )
     assert not result.skipped, result.skipped
     assert result.worst_ratio <= 1.0, str(result)
 

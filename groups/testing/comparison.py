@@ -174,11 +174,13 @@ class Case:
     magnitudes: tuple[float, ...]
     result: CheckResult
     grid: bool = False
+    device: torch.device | str = "cpu"
     tol: Tolerances = field(init=False)
     _draws: int = field(init=False, default=0)
 
     def __post_init__(self) -> None:
         self.tol = tolerances_for(self.dtype)
+        self.device = torch.empty(0, device=self.device).device  # "cuda" -> "cuda:0"
 
     @property
     def eps(self) -> float:
@@ -210,10 +212,11 @@ class Case:
             x = grid_elements(
                 self.group, dtype=self.dtype, magnitudes=self.magnitudes, draw=self._draws
             )
-            return self._grid_take(x, batch_shape, tuple(self.group.element_shape))
+            x = self._grid_take(x, batch_shape, tuple(self.group.element_shape))
+            return x.to(self.device)
         bs = self.batch_shape if batch_shape is None else batch_shape
         drawn = elements(self.group, batch_shape=bs, dtype=self.dtype, magnitudes=self.magnitudes)
-        return data.draw(drawn, label=label)
+        return data.draw(drawn, label=label).to(self.device)
 
     def v(self, data, label: str, *, batch_shape=None) -> torch.Tensor:
         """Tangent vectors of the case's batch shape (or ``batch_shape``), drawn as ``label``."""
@@ -222,12 +225,12 @@ class Case:
             v = grid_tangents(
                 self.group, dtype=self.dtype, magnitudes=self.magnitudes, roll=5 * self._draws
             )
-            return self._grid_take(v, batch_shape, (self.group.tangent_dim,))
+            return self._grid_take(v, batch_shape, (self.group.tangent_dim,)).to(self.device)
         bs = self.batch_shape if batch_shape is None else batch_shape
         drawn = tangent_vectors(
             self.group, batch_shape=bs, dtype=self.dtype, magnitudes=self.magnitudes
         )
-        return data.draw(drawn, label=label)
+        return data.draw(drawn, label=label).to(self.device)
 
     def seed(self, data, label: str) -> int:
         """A seed for a ``torch.Generator``, drawn as ``label``."""
@@ -239,8 +242,8 @@ class Case:
     # -- shapes
 
     def shape(self, what: str, t: torch.Tensor, trailing: tuple[int, ...], *, batch=None) -> None:
-        """Requires ``t`` to be a tensor of shape ``(*batch, *trailing)`` in the case's dtype
-        (``batch`` defaults to the case's batch shape)."""
+        """Requires ``t`` to be a tensor of shape ``(*batch, *trailing)`` in the case's dtype, on
+        the case's device (``batch`` defaults to the case's batch shape)."""
         want = (*(self.batch_shape if batch is None else batch), *trailing)
         if not isinstance(t, torch.Tensor):
             self.fail(f"{what} returned {type(t).__name__}, not a torch.Tensor")
@@ -248,6 +251,11 @@ class Case:
             self.fail(
                 f"{what} has shape {tuple(t.shape)} and dtype {t.dtype}; expected shape {want} "
                 f"and dtype {self.dtype}"
+            )
+        if t.device != self.device:
+            self.fail(
+                f"{what} is on {t.device}, its inputs on {self.device}: build constants on the "
+                "input's device (torch.zeros(..., dtype=x.dtype, device=x.device))"
             )
 
     # -- comparisons
@@ -295,7 +303,7 @@ class Case:
     ) -> None:
         """Requires ``err <= tol`` per batch element (``err`` and ``tol`` broadcast; NaN fails)."""
         err = err.detach().double()
-        tol_t = torch.as_tensor(tol, dtype=torch.float64).expand_as(err)
+        tol_t = torch.as_tensor(tol, dtype=torch.float64, device=err.device).expand_as(err)
         if err.numel() == 0:
             return
         # err / tol, with a zero tolerance meaning "err <= 0" and NaN counting as infinitely bad
@@ -379,6 +387,7 @@ class Case:
         errs = []
         for cols in _tangent_blocks(self.group):
             if cols.any():
+                cols = cols.to(a.device)
                 errs.append(_amax(a[..., cols] - e[..., cols], 1) / magnitude(e[..., cols], 1))
         err = torch.stack(errs, -1).amax(-1) / scale
         tol = self.tol.value if tol is None else tol

@@ -56,7 +56,7 @@ def membership(c: Case, data) -> None:
     """Outputs are on the group and have their documented shapes; no input is modified."""
     G, dt, bs, k = c.group, c.dtype, c.batch_shape, c.group.tangent_dim
     x, y, v = c.x(data, "x"), c.x(data, "y"), c.v(data, "v")
-    gen = torch.Generator().manual_seed(c.seed(data, "random seed"))
+    gen = torch.Generator(c.device).manual_seed(c.seed(data, "random seed"))
     inputs = {"x": x, "y": y, "v": v}
     saved = {name: t.clone() for name, t in inputs.items()}
     el = tuple(G.element_shape)
@@ -64,9 +64,11 @@ def membership(c: Case, data) -> None:
     # The first three make elements from nothing but their arguments; the drawn x and y are made
     # by them (strategies.elements), so they are checked first and a NaN in x is blamed on them.
     makers: dict[str, tuple[Callable[[], torch.Tensor], tuple[int, ...], bool]] = {
-        "identity(batch_shape)": (lambda: G.identity(bs, dtype=dt), el, True),
+        "identity(batch_shape)": (lambda: G.identity(bs, dtype=dt, device=c.device), el, True),
         "exp(v)": (lambda: G.exp(v), el, True),
-        "random(batch_shape)": (lambda: G.random(bs, generator=gen, dtype=dt), el, True),
+        "random(batch_shape)": (
+            lambda: G.random(bs, generator=gen, dtype=dt, device=c.device), el, True
+        ),
     }
     ops: dict[str, tuple[Callable[[], torch.Tensor], tuple[int, ...], bool]] = {
         "compose(x, y)": (lambda: G.compose(x, y), el, True),
@@ -117,8 +119,8 @@ def identity(c: Case, data) -> None:
     """``e x = x e = x``, ``e^-1 = e``, ``exp(0) = e``, ``log(e) = 0``, ``rminus(x, x) = 0``."""
     G, dt, bs = c.group, c.dtype, c.batch_shape
     x = c.x(data, "x")
-    e = G.identity(bs, dtype=dt)
-    zero = torch.zeros(*bs, G.tangent_dim, dtype=dt)
+    e = G.identity(bs, dtype=dt, device=c.device)
+    zero = torch.zeros(*bs, G.tangent_dim, dtype=dt, device=c.device)
     c.close_elements("compose(identity, x) == x", G.compose(e, x), x, inputs={"x": x})
     c.close_elements("compose(x, identity) == x", G.compose(x, e), x, inputs={"x": x})
     c.close_elements("inverse(identity) == identity", G.inverse(e), e)
@@ -134,7 +136,7 @@ def inverse(c: Case, data) -> None:
     """``x x^-1 = x^-1 x = e``, ``(x^-1)^-1 = x``, ``(x y)^-1 = y^-1 x^-1``."""
     G, dt, bs = c.group, c.dtype, c.batch_shape
     x, y = c.x(data, "x"), c.x(data, "y")
-    e = G.identity(bs, dtype=dt)
+    e = G.identity(bs, dtype=dt, device=c.device)
     xi, yi = G.inverse(x), G.inverse(y)
     s = element_magnitude(G, x) * element_magnitude(G, xi)
     ins = {"x": x}
@@ -210,7 +212,7 @@ def adjoint(c: Case, data) -> None:
     c.close("adjoint(compose(x, y)) == adjoint(x) adjoint(y)", G.adjoint(G.compose(x, y)),
             ad_x @ ad_y, trailing=2, scale=magnitude(ad_x, 2) * magnitude(ad_y, 2),
             inputs={"x": x, "y": y})
-    eye = torch.eye(k, dtype=c.dtype).expand_as(ad_x)
+    eye = torch.eye(k, dtype=c.dtype, device=c.device).expand_as(ad_x)
     ad_xi = G.adjoint(xi)
     c.close("adjoint(x) adjoint(inverse(x)) == I", ad_x @ ad_xi, eye, trailing=2,
             scale=magnitude(ad_x, 2) * magnitude(ad_xi, 2), inputs={"x": x})
@@ -249,7 +251,7 @@ def _embedding_rejects(c: Case, data, z: torch.Tensor) -> None:
     off = {"NaN in the first element": bad.reshape(z.shape)}
     if G.embedding_dim > G.tangent_dim:
         gen = torch.Generator().manual_seed(c.seed(data, "push seed"))
-        push = torch.randn(z.shape, generator=gen, dtype=torch.float64).to(c.dtype)
+        push = torch.randn(z.shape, generator=gen, dtype=torch.float64).to(z)
         off["a random push off the group"] = z + 0.5 * push * (1 + z.abs())
     for what, zb in off.items():
         try:
@@ -357,8 +359,9 @@ def gradcheck(c: Case, data) -> None:
         return
     gen = torch.Generator().manual_seed(1234)
     n = math.prod(bs)
-    v = _generic_tangents(G, n, gen).reshape(*bs, G.tangent_dim).requires_grad_(True)
-    x = G.random(bs, generator=gen, dtype=torch.float64).requires_grad_(True)
+    v = _generic_tangents(G, n, gen).reshape(*bs, G.tangent_dim).to(c.device)
+    x = G.random(bs, generator=gen, dtype=torch.float64).to(c.device).requires_grad_(True)
+    v.requires_grad_(True)
     checks = {
         "exp(v)": (lambda v_: G.exp(v_), (v,)),
         "log(exp(v))": (lambda v_: G.log(G.exp(v_)), (v,)),

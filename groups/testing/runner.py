@@ -75,12 +75,15 @@ def run_property(
     magnitudes: Sequence[float] | None = None,
     derandomize: bool = True,
     grid: bool = True,
+    device: torch.device | str = "cpu",
 ) -> CheckResult:
     """Runs property ``prop`` (a name in :data:`~groups.testing.properties.PROPERTIES`) as the
     module docstring describes; what every ``check_*`` calls, with its ``**options``:
     ``max_examples`` (hypothesis examples), ``magnitudes`` (tangent-vector scales; default the
     group's ``tangent_magnitudes`` when it declares them, else :data:`MAGNITUDES`),
-    ``derandomize`` (reproducible examples) and ``grid`` (the adversarial batch first)."""
+    ``derandomize`` (reproducible examples), ``grid`` (the adversarial batch first) and
+    ``device`` (where the inputs are put: ``"cuda"`` checks the group's kernels on a GPU, and
+    that every output stays on the inputs' device)."""
     if not isinstance(group, LieGroup):
         raise TypeError(f"check_{prop} needs a LieGroup instance, got {group!r}.")
     bs = tuple(int(b) for b in batch_shape)
@@ -97,7 +100,7 @@ def run_property(
 
     def new_case(batch: tuple[int, ...], on_grid: bool = False) -> Case:
         return Case(group, dtype=dtype, batch_shape=batch, magnitudes=mags, result=result,
-                    grid=on_grid)
+                    grid=on_grid, device=device)
 
     if prop in DETERMINISTIC:
         once(new_case(bs), None)
@@ -275,6 +278,7 @@ def check_group(
     magnitudes: Sequence[float] | None = None,
     checks: Iterable[str] | None = None,
     derandomize: bool = True,
+    device: torch.device | str = "cpu",
 ) -> list[CheckResult]:
     """Runs every axiom check on ``group`` for each dtype and batch shape.
 
@@ -289,6 +293,8 @@ def check_group(
             whose ``exp`` grows exponentially (a scale, e^lambda) declares smaller ones.
         checks: names from :data:`CHECKS` to run (default: all).
         derandomize: fixed hypothesis examples (reproducible); False explores new ones each run.
+        device: where the inputs are put (``"cuda"``: the group on a GPU); every output must
+            stay there.
 
     Returns:
         One :class:`CheckResult` per property, dtype and batch shape (worst errors seen).
@@ -311,6 +317,7 @@ def check_group(
                     result = CHECKS[name](
                         group, dtype=dtype, batch_shape=bs, max_examples=max_examples,
                         magnitudes=magnitudes, derandomize=derandomize, grid=i == 0,
+                        device=device,
                     )  # fmt: skip
                 except AssertionError as err:
                     failures[name, dtype] = str(err)
