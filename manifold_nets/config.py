@@ -194,6 +194,10 @@ class TrainSettings:
     tbptt: Optional[int] = None
     #: Stop an epoch after this many batches (``null``: the whole training split); for quick looks.
     max_batches: Optional[int] = None
+    #: Stop after the epoch past which the next would end beyond this many minutes of training
+    #: (judged by the last epoch's time; ``null``: all ``epochs``): a run on a lent machine
+    #: trains as far as its time allows, keeps ``best.pt`` and is evaluated; ``resume`` goes on.
+    time_limit: Optional[float] = None
     #: Sequences per forward pass in validation and evaluation.
     eval_batch_size: int = 500
     noise: NoiseConfig = field(default_factory=NoiseConfig)

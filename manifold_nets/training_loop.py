@@ -189,11 +189,23 @@ def fit(
     if first == 1:
         trainer.start(val)
     model.train()
+    began = time.monotonic()
     for epoch in range(first, settings.epochs + 1):
         if stream is not None and epoch > first:
             train = _prepare(stream.epoch(epoch), model, trainer.device, "training")
+        start_epoch = time.monotonic()
         trainer.epoch(epoch, train, val, transform)
+        now = time.monotonic()
+        if epoch < settings.epochs and _out_of_time(settings, now - began, now - start_epoch):
+            log.info("train.time_limit (%.3g min): stopped after epoch %d of %d",
+                     settings.time_limit, epoch, settings.epochs)
+            break
     return trainer.result()
+
+
+def _out_of_time(settings: TrainSettings, spent: float, last: float) -> bool:
+    """Whether another epoch as long as the ``last`` would end past ``settings.time_limit``."""
+    return settings.time_limit is not None and spent + last > 60.0 * settings.time_limit
 
 
 def _stream(train_data, settings: TrainSettings) -> DataStream | None:

@@ -75,6 +75,15 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
             "norm the gradient is clipped to (a negative one would ascend, zero would freeze the "
             "model), e.g. 1.0."
         )
+    limit = settings.time_limit
+    if limit is not None and (
+        isinstance(limit, bool) or not isinstance(limit, (int, float))
+        or not (math.isfinite(limit) and limit > 0)
+    ):
+        raise ValueError(
+            f"time_limit must be a number of minutes > 0 or None (null: all epochs), got "
+            f"{limit!r}."
+        )
     check_schedule(settings.schedule, float(settings.lr), float(settings.lr_min))
     for prefix, rate in dict(settings.param_lr or {}).items():
         if not isinstance(prefix, str) or not prefix:

@@ -311,6 +311,10 @@ def test_evaluation_table_and_figure(tmp_path):
         ({"grad_clip": 0.0}, "grad_clip must be > 0 or None (null: no clipping), got 0.0"),
         ({"threads": 0}, "threads must be an integer >= 1 or None (null: one thread, or "
                           "OMP_NUM_THREADS when set), got 0."),
+        ({"time_limit": 0}, "time_limit must be a number of minutes > 0 or None (null: all "
+                            "epochs), got 0."),
+        ({"time_limit": float("nan")}, "time_limit must be a number of minutes > 0"),
+        ({"time_limit": "10"}, "time_limit must be a number of minutes > 0"),
     ],
 )
 def test_nonsense_settings_fail_before_any_work(tmp_path, kwargs, message):
@@ -320,6 +324,25 @@ def test_nonsense_settings_fail_before_any_work(tmp_path, kwargs, message):
         train_model(make_model(), make_data(8), make_data(4, seed=1), tmp_path / "run", **kwargs)
     assert str(err.value).startswith(message)
     assert not (tmp_path / "run").exists()
+
+
+def test_a_time_limit_stops_after_the_epoch_the_next_would_overrun_and_resume_goes_on(tmp_path):
+    train, val = make_data(16), make_data(4, seed=1)
+    # a limit shorter than any epoch: one epoch is trained, its checkpoints kept
+    res = train_model(make_model(), train, val, tmp_path / "a", epochs=4, time_limit=1e-9)
+    assert [r["epoch"] for r in res.history] == [0, 1]
+    assert (tmp_path / "a" / "checkpoints" / "last.pt").is_file()
+    # resume continues where the limit stopped it, to the same weights as one straight run
+    model = make_model(seed=5)
+    resumed = train_model(model, train, val, tmp_path / "b", epochs=2, resume=str(tmp_path / "a"))
+    straight = make_model()
+    train_model(straight, train, val, tmp_path / "c", epochs=2)
+    assert [r["epoch"] for r in resumed.history] == [0, 1, 2]
+    for (k, a), b in zip(straight.state_dict().items(), model.state_dict().values()):
+        torch.testing.assert_close(a, b, rtol=0, atol=0, msg=k)
+    # a limit no epoch reaches: all of them
+    res = train_model(make_model(), train, val, tmp_path / "d", epochs=2, time_limit=60.0)
+    assert [r["epoch"] for r in res.history] == [0, 1, 2]
 
 
 def test_zero_epochs_validate_and_save_the_starting_model_only(tmp_path):
