@@ -6,12 +6,17 @@
   ``pytest --hypothesis-profile=dev`` or ``HYPOTHESIS_PROFILE=dev pytest``.
 * One torch thread per process: tensors in tests are small, and ``pytest -n 2`` on two cores
   would otherwise oversubscribe them (each worker starting one thread per core).
+* ``--device`` (or ``MN_TEST_DEVICE``): where the device-agnostic tests put their tensors
+  (the fixture ``device``; default ``cpu``, which CI uses). ``pytest --device cuda
+  tests/test_group_axioms.py tests/test_device.py`` runs the group axioms, the observer, training,
+  resume and evaluation on a GPU against the CPU (benchmarks/gpu/run.sh).
 """
 
 from __future__ import annotations
 
 import os
 
+import pytest
 import torch
 from hypothesis import settings
 
@@ -20,3 +25,27 @@ settings.register_profile("dev", deadline=None, max_examples=300)
 settings.load_profile(os.environ.get("HYPOTHESIS_PROFILE", "ci"))
 
 torch.set_num_threads(1)
+
+
+def pytest_addoption(parser: pytest.Parser) -> None:
+    parser.addoption(
+        "--device", default=os.environ.get("MN_TEST_DEVICE", "cpu"),
+        help="torch device of the device-agnostic tests (fixture `device`): cpu (default), "
+        "cuda, cuda:1, ...; also MN_TEST_DEVICE",
+    )
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    name = config.getoption("--device")
+    try:
+        dev = torch.device(name)
+    except (RuntimeError, TypeError, ValueError):
+        raise pytest.UsageError(f"--device {name!r} is not a torch device (cpu, cuda, cuda:1)")
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise pytest.UsageError(f"--device {name!r}, but CUDA is not available here; use cpu")
+
+
+@pytest.fixture(scope="session")
+def device(request: pytest.FixtureRequest) -> torch.device:
+    """The device the device-agnostic tests run on (``--device``; default cpu)."""
+    return torch.empty(0, device=request.config.getoption("--device")).device

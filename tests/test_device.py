@@ -1,0 +1,148 @@
+"""The observer on the device of ``pytest --device`` (default cpu; CI), against the CPU.
+
+Each test runs the same work on the CPU and on ``device``: the shipped observers' rollouts and
+online steps, a training run, its resume, and the train command end to end. On the CPU the two
+are the same computation (the tests then pin that nothing assumes a device: every tensor a
+module makes follows its inputs). On a GPU the float32 network rounds differently from the
+CPU's, so rollouts agree to float32 rounding grown over the steps, not bit for bit; the largest
+deviation is recorded (``record_property``, in ``--junitxml``) and bounded. ``benchmarks/gpu/run.sh``
+runs this file with ``--device cuda``.
+"""
+
+from __future__ import annotations
+
+import functools
+import json
+
+import pytest
+import torch
+
+from groups import SO3, Euclidean, Product
+from manifold_nets import GRUCore, TrainSettings, load_observer
+from manifold_nets.data import TrajectoryDataset
+from manifold_nets.deploy import OnlineStep
+from manifold_nets.evaluation import evaluate, rollout
+from manifold_nets.observer import GroupUpdate, ResidualObserver
+from manifold_nets.training import fit
+from tests.observer_checks import run_tiny
+
+ZOO = [
+    "zoo:rigid_body/paper",
+    "zoo:rigid_body/nominal",
+    "zoo:rigid_body/outliers",
+    "zoo:rigid_body/correlated",
+    "zoo:rigid_body/bias_walk",
+    "zoo:broad/attitude",
+]
+#: float32 rounding (1e-7) grown over 100 closed-loop steps of a stable observer; the bound on
+#: another device than the CPU (on the CPU the results are identical)
+ROLLOUT_TOL = 1e-4
+
+
+def _deviation(group, a: torch.Tensor, b: torch.Tensor) -> float:
+    """The largest entry of ``embed(a) - embed(b)`` (both moved to the CPU in float64)."""
+    a, b = a.detach().cpu().double(), b.detach().cpu().double()
+    return float((group.embed(a) - group.embed(b)).abs().max())
+
+
+def _bound(device: torch.device, tol: float) -> float:
+    return 0.0 if device.type == "cpu" else tol
+
+
+@pytest.mark.parametrize("entry", ZOO)
+def test_shipped_observers_roll_out_and_step_on_the_device(entry, device, record_property):
+    loaded = load_observer(entry)
+    system, cpu = loaded.system, loaded.observer
+    there = load_observer(entry, map_location=device).observer
+    assert {p.device for p in there.parameters()} == {device}
+    data = system.simulate(6, 100, 0.2, torch.Generator().manual_seed(3))
+    est_cpu = rollout(cpu, data)
+    est_dev = rollout(there, data)  # the CPU's data, moved by the observer; estimates on the CPU
+    assert est_dev.device.type == "cpu" and est_dev.dtype == est_cpu.dtype
+    group = system.group
+    assert float(group.membership_error(est_dev).max()) < 1e-9  # float64 state on any device
+    dev = _deviation(group, est_dev, est_cpu)
+    record_property(f"rollout_deviation[{entry}]", dev)
+    assert dev <= _bound(device, ROLLOUT_TOL), dev
+    # the online step (what deployment runs), fed one sample at a time on the device
+    step = OnlineStep(there)
+    x, *state = step.initial_state(len(data))
+    assert x.device == device and all(s.device == device for s in state)
+    y, u = data.measurements.to(device), data.inputs.to(device)
+    with torch.inference_mode():
+        for k in range(data.measurements.shape[1]):
+            x, *state = step(x, *state, y[:, k], *((u[:, k],) if there.input_dim else ()))
+    last = x.reshape(est_dev[:, -1].shape)
+    assert last.device == device
+    torch.testing.assert_close(last.cpu(), est_dev[:, -1], rtol=0, atol=1e-9)
+
+
+GROUP = Product(SO3(), Euclidean(3), names=("R", "p"))
+
+
+def _walks(n: int, t: int, seed: int) -> TrajectoryDataset:
+    """Random walks on SO(3) x R^3 measured as their noisy embedding."""
+    g = torch.Generator().manual_seed(seed)
+    xs = [GROUP.random((n,), generator=g, dtype=torch.float64)]
+    for _ in range(t):
+        xs.append(GROUP.rplus(xs[-1], 0.2 * torch.randn(n, 6, generator=g, dtype=torch.float64)))
+    states = torch.stack(xs, 1)
+    meas = GROUP.embed(states[:, 1:]) + 0.1 * torch.randn(n, t, 12, generator=g,
+                                                          dtype=torch.float64)
+    return TrajectoryDataset(states, meas, torch.zeros(n, t, 0, dtype=torch.float64))
+
+
+def _observer(device) -> ResidualObserver:
+    torch.manual_seed(0)
+    core = functools.partial(GRUCore, hidden_size=32, num_layers=2)
+    return ResidualObserver(GROUP, 12, core, update=GroupUpdate({})).to(device)
+
+
+def _fit(device, out, **settings):
+    model = _observer(device)
+    base = {"epochs": 2, "batch_size": 8, "lr": 3e-3, "progress": False}
+    res = fit(model, _walks(32, 20, 0), _walks(8, 20, 1), TrainSettings(**{**base, **settings}),
+              out_dir=out, seed=4)
+    return model, res
+
+
+def test_training_on_the_device_follows_the_cpu(tmp_path, device, record_property):
+    cpu, res_cpu = _fit(torch.device("cpu"), tmp_path / "cpu")
+    there, res_dev = _fit(device, tmp_path / "dev")
+    assert {p.device for p in there.parameters()} == {device}
+    losses = [(a["val_loss"], b["val_loss"]) for a, b in zip(res_cpu.history, res_dev.history)]
+    worst = max(abs(a - b) / a for a, b in losses)
+    record_property("training_val_loss_relative_deviation", worst)
+    assert len(losses) == 3 and worst <= _bound(device, 1e-4), losses
+    # the checkpoints are read back on the CPU
+    best = torch.load(res_dev.best_path, map_location="cpu", weights_only=True)
+    assert all(t.device.type == "cpu" for t in best["model"].values())
+    # evaluation of the device's model: the same rows as the CPU's within the same rounding
+    test = _walks(8, 30, 2)
+    row_cpu, row_dev = evaluate(cpu, test).row, evaluate(there, test).row
+    for key, value in row_cpu.items():
+        if isinstance(value, float) and key != "seconds":
+            want = pytest.approx(value, rel=_bound(device, 1e-4), abs=1e-12, nan_ok=True)
+            assert row_dev[key] == want, key
+
+
+def test_resume_on_the_device_gives_the_uninterrupted_weights(tmp_path, device, record_property):
+    straight, _ = _fit(device, tmp_path / "a")
+    _fit(device, tmp_path / "b", epochs=1)
+    resumed, _ = _fit(device, tmp_path / "c", resume=str(tmp_path / "b"))
+    worst = max(float((a - b).abs().max()) for a, b in
+                zip(straight.state_dict().values(), resumed.state_dict().values()))
+    record_property("resume_weight_deviation", worst)
+    # the CPU is bit for bit; cuBLAS may pick another reduction order between two runs
+    assert worst <= _bound(device, 1e-6), worst
+
+
+def test_the_train_command_on_the_device(tmp_path, device):
+    """The whole command (data, training, checkpoints, table, figure) with train.device set."""
+    name = "cpu" if device.type == "cpu" else str(device)
+    run_tiny("default", tmp_path, tmp_path / "run", f"train.device={name}", "train.epochs=2")
+    metrics = json.loads((tmp_path / "run" / "results" / "metrics.json").read_text())
+    assert metrics["best_epoch"] in (0, 1, 2)
+    assert (tmp_path / "run" / "results" / "table.md").is_file()
+    loaded = load_observer(tmp_path / "run")  # the files are the CPU's to read
+    assert {p.device.type for p in loaded.observer.parameters()} == {"cpu"}
