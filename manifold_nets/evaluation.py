@@ -139,8 +139,9 @@ class CalibratedEstimator(ObserverEstimator):
 
 
 def _calibration_columns(group, est, cov, states, skip: int) -> dict[str, float]:
-    """Per factor: ``<f> ANEES`` and ``<f> in 3 sigma %`` over the steps ``>= skip`` whose
-    covariance is finite."""
+    """Per factor: ``<f> ANEES``, ``<f> in band %`` (the steps whose ANEES over the sequences is
+    inside its chi-square 95 % band for that many sequences) and ``<f> in 3 sigma %`` over the
+    steps ``>= skip`` whose covariance is finite."""
     from .calibration import calibration, tangent_errors
 
     est, cov, states = est[:, skip:], cov[:, skip:].double(), states[:, skip:]
@@ -150,6 +151,7 @@ def _calibration_columns(group, est, cov, states, skip: int) -> dict[str, float]
     out = {}
     for name, c in calibration(group, xi, safe, known).items():
         out[f"{name} ANEES"] = c.anees
+        out[f"{name} in band %"] = 100.0 * c.in_band
         out[f"{name} in 3 sigma %"] = 100.0 * c.shares[3]
     return out
 

@@ -160,6 +160,7 @@ def test_evaluate_scores_the_covariance_of_an_estimator_that_gives_one():
     for f in ("R", "p", "b_omega", "b_v"):
         assert scored.row[f"{f} ANEES"] == pytest.approx(want[f].anees)
         assert scored.row[f"{f} in 3 sigma %"] == pytest.approx(100 * want[f].shares[3])
+        assert scored.row[f"{f} in band %"] == pytest.approx(100 * want[f].in_band)
     assert scored.row["R est"] == plain.row["R est"]
 
 
