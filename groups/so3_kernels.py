@@ -85,15 +85,62 @@ _BUILDERS = {
     "quat_one": lambda: torch.tensor([[1.0]] * 4 + [[0.0]] * 6, dtype=torch.float64),
     "quat_table_t": lambda: torch.tensor(_QUAT_TABLE, dtype=torch.float64).t().contiguous(),
     "vee": lambda: torch.tensor(_VEE, dtype=torch.float64),
-    "pivot_rows": lambda: torch.tensor(_PIVOT_ROWS, dtype=torch.int64),
+    "four": lambda: torch.tensor(4.0, dtype=torch.float64),
+    "minus_four": lambda: torch.tensor(-4.0, dtype=torch.float64),
+    # the rows of pivot k as a column (4, 1)
+    **{f"pivot_rows{k}": (lambda k=k: torch.tensor(_PIVOT_ROWS[k], dtype=torch.int64)[:, None])
+       for k in range(4)},
 }
+
+
+class _Tables(dict):
+    """The tables in one dtype and device by name, each made by :func:`constant` when first
+    read: one lookup per kernel call instead of one per table."""
+
+    def __init__(self, like: torch.Tensor, keep: bool):
+        super().__init__()
+        self.like, self.keep = like, keep
+
+    def __missing__(self, name: str) -> torch.Tensor:
+        table = constant(name, self.like)
+        if self.keep:
+            self[name] = table
+        return table
+
+
+_TABLES: dict[tuple, _Tables] = {}
+
+
+def _tables(like: torch.Tensor) -> _Tables:
+    """The tables in ``like``'s dtype and device (made afresh, uncached, where :func:`constant`
+    makes them afresh: while ``torch.compile`` traces, for a tensor subclass)."""
+    if torch.compiler.is_compiling() or type(like) is not torch.Tensor:
+        return _Tables(like, keep=False)
+    key = (like.dtype, like.device)
+    tables = _TABLES.get(key)
+    if tables is None:
+        with torch.inference_mode(False), torch.no_grad():  # like constant's own tables
+            tables = _TABLES[key] = _Tables(torch.empty(0, dtype=like.dtype, device=like.device),
+                                            keep=True)
+    return tables
 
 
 def constant(name: str, like: torch.Tensor) -> torch.Tensor:
     """The table ``name`` in ``like``'s dtype (int64 for an index table) and device, cached
     (:func:`groups.numerics.cached_constant`)."""
-    dtype = torch.int64 if name == "pivot_rows" else like.dtype
+    dtype = torch.int64 if name.startswith("pivot_rows") else like.dtype
     return nx.cached_constant("so3." + name, _BUILDERS[name], like, dtype)
+
+
+def _matmul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """``a @ b`` of one batch shape; ``bmm`` for a batch of one dimension (the observer's):
+    ``matmul`` calls the same ``bmm`` on the same strides after four more operations."""
+    return torch.bmm(a, b) if a.dim() == 3 and b.dim() == 3 else torch.matmul(a, b)
+
+
+def _values(t: torch.Tensor) -> torch.Tensor:
+    """``t`` without its graph, for a comparison (no operation when nothing records)."""
+    return t.detach() if t.requires_grad else t
 
 
 def records(*ts: torch.Tensor) -> bool:
@@ -147,46 +194,61 @@ def recorded_grad(formula, inputs, needs, grad):
 # ------------------------------------------------------------------------------------ exp
 
 
+def _rodrigues(t2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(nx.sin_over_t(t2), nx.one_minus_cos_over_t2(t2))``; when nothing records, their closed
+    forms with the clamp of ``t2`` and its square root shared (the same operations, two fewer;
+    ``tests/test_observer_lean.py`` holds them equal)."""
+    if nx.records(t2):
+        return nx.sin_over_t(t2), nx.one_minus_cos_over_t2(t2)
+    t2 = torch.clamp_min(t2, torch.finfo(t2.dtype).eps ** 2)  # nx._away_from_zero
+    t = t2.sqrt()
+    s = torch.sin(0.5 * t)
+    return torch.sin(t) / t, 2.0 * s * s / t2
+
+
 def _exp_rows(v: torch.Tensor, derivative: bool = False):
     """``exp(v)`` ``(*batch, 3, 3)`` for ``v`` ``(*batch, 3)`` and (``derivative``) what its
     derivative reads, ``(over, coef)``: where the angle overflowed ``(N, 1)`` and
-    ``coef = (b, c, (1 - b) / t2)`` ``(3, N)``,
+    ``coef = (b, c, (1 - b) / t2)`` ``(N, 3)``,
     ``b = sin(t) / t``, ``c = (1 - cos t) / t^2``; else ``None``.
 
     A finite angle whose square overflows (``|v| >= sqrt(finfo.max)``) is taken as a whole number
     of turns: its rotation is the identity (``SO3.exp``).
     """
-    eye = constant("eye", v)
-    w = torch.mm(eye, v.reshape(-1, 3).t())  # (3, N): rows x, y, z (a transposing copy)
-    x, y, z = w.unbind(0)
+    tab = _tables(v)
+    w = torch.mm(tab["eye"], (v if v.dim() == 2 else v.reshape(-1, 3)).t())  # (3, N): rows x, y, z
+    x, y, z = w.unbind(0)  # (the product is a transposing copy)
     sq = w * w
     t2 = sq.sum(0)
-    b = nx.sin_over_t(t2)
-    c = nx.one_minus_cos_over_t2(t2)
+    b, c = _rodrigues(t2)
     cx, cy = c * x, c * y
-    # (9, N), the rows of the table in order; t2 - v_i^2 = v_j^2 + v_k^2
-    terms = torch.cat(((t2 - sq) * c, torch.stack((cx * y, cx * z, cy * z)), b * w))
+    # (9, N), the rows of the table in order, as one product: (t2 - v_i^2) c (t2 - v_i^2 =
+    # v_j^2 + v_k^2), (c x) y, (c x) z, (c y) z, b v
+    terms = torch.cat((t2 - sq, torch.stack((cx, cx, cy)), w))
+    terms = terms * torch.stack((c, c, c, y, z, z, b, b, b))
     over = torch.isinf(t2)  # the terms are NaN there: zero, so that R = I
     terms = terms.masked_fill_(over, 0.0)
-    r = torch.addmm(constant("eye9", v), terms.t(), constant("exp_table", v))
+    r = torch.addmm(tab["eye9"], terms.t(), tab["exp_table"])
     r = r.reshape(*v.shape[:-1], 3, 3)
     if not derivative:
         return r, None
     # (1 - b) / t2 = (t - sin t) / t^3 loses digits to cancellation at small t, but it multiplies
     # (v . a) v, of size t^2 |a|: the product keeps an absolute error of a few eps |a|
-    d = (1.0 - b) / t2.clamp(min=torch.finfo(t2.dtype).tiny)
-    return r, (over.unsqueeze(-1), torch.stack((b, c, d)))
+    d = (1.0 - b) / torch.clamp_min(t2, torch.finfo(t2.dtype).tiny)
+    return r, (over.unsqueeze(-1), torch.stack((b, c, d), dim=1))
 
 
 def _exp_grad(v, r, over, coef, g):
     """``d/dv <G, exp(v)> = J_l(v) vee(R^T G)``, ``J_l(v) a = b a + c (v x a) + (1 - b) / t2
     (v . a) v``; zero where the angle overflowed (the identity is constant there)."""
-    v, r, g2 = v.reshape(-1, 3), r.reshape(-1, 3, 3), g.reshape(-1, 3, 3)
-    a = torch.mm(torch.bmm(r.transpose(1, 2), g2).reshape(-1, 9), constant("vee", g))
-    b, c, d = coef.unsqueeze(-1).unbind(0)
+    flat = g.dim() == 3  # a batch of one dimension: no reshape
+    v, r, g2 = (v, r, g) if flat else (v.reshape(-1, 3), r.reshape(-1, 3, 3), g.reshape(-1, 3, 3))
+    a = torch.mm(torch.bmm(r.transpose(1, 2), g2).reshape(-1, 9), _tables(g)["vee"])
+    b, c, d = coef.split_with_sizes((1, 1, 1), dim=1)  # (N, 1) each (split is Python)
     out = torch.addcmul(b * a, c, torch.linalg.cross(v, a))
     out = torch.addcmul(out, d * (v * a).sum(-1, keepdim=True), v)
-    return torch.where(over, 0.0, out).reshape(g.shape[:-2] + (3,))
+    out = out.masked_fill_(over, 0.0)
+    return out if flat else out.reshape(g.shape[:-2] + (3,))
 
 
 class _Exp(torch.autograd.Function):
@@ -218,14 +280,14 @@ def _rplus_formula(x, v):
 def rplus_values(x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, tuple]:
     """``(x exp(v), saved)``: the value and what :func:`rplus_grads` reads (no graph)."""
     e, (over, coef) = _exp_rows(v, derivative=True)
-    out = torch.matmul(x, e)
+    out = _matmul(x, e)
     return out, (out, e, over, coef)
 
 
 def rplus_grads(v: torch.Tensor, saved: tuple, grad: torch.Tensor, needs=(True, True)):
     """``(d/dx, d/dv) <G, x exp(v)>``: ``G E^T`` and ``J_l(v) vee((x E)^T G)``."""
     out, e, over, coef = saved
-    gx = torch.matmul(grad, e.transpose(-1, -2)) if needs[0] else None
+    gx = _matmul(grad, e.transpose(-1, -2)) if needs[0] else None
     gv = _exp_grad(v, out, over, coef, grad) if needs[1] else None
     return gx, gv
 
@@ -258,52 +320,62 @@ def rplus(x: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
 
 def _log_parts(r: torch.Tensor, derivative: bool = False):
     """The logarithm of ``r`` ``(*batch, 3, 3)``, ``(*batch, 3)``, and (``derivative``) what
-    its derivative reads, ``(rows, q, coef)``, else ``None``: the rows of the candidate table
-    the pivot picked ``(4, N)``, the candidate quaternion ``q = (w, x, y, z)`` ``(4, N)`` and
-    ``coef = (k2, e, h)`` ``(3, N)``, with ``d out_j = k2 dq_j + q_j (e d + h dw)``,
-    ``d = <q_xyz, dq_xyz>``, ``j = x, y, z``.
+    its derivative reads, ``(rows, qv, k2, e, h)``, else ``None``: the rows of the candidate
+    table the pivot picked ``(4, N)``, the vector part ``qv = (x, y, z)`` ``(3, N)`` of the
+    candidate quaternion ``q = (w, x, y, z)`` and ``k2, e, h`` ``(N,)``, with
+    ``d out_j = k2 dq_j + q_j (e d + h dw)``, ``d = <q_xyz, dq_xyz>``, ``j = x, y, z``.
     """
-    f = torch.addmm(constant("quat_one", r), constant("quat_table", r), r.reshape(-1, 9).t())
+    tab = _tables(r)
+    f = torch.addmm(tab["quat_one"], tab["quat_table"], r.reshape(-1, 9).t())
     # the candidate of the largest pivot 4 q_k^2 (the first on ties): no square root of a small
     # number is taken, and the gradient is finite
-    p0, p1, p2, p3 = f[:4].detach().unbind(0)  # (argmax over the rows is slow on the CPU)
+    p0, p1, p2, p3 = _values(f).unbind(0)[:4]  # (argmax over the rows is slow on the CPU)
     hi = torch.maximum(p2, p3) > torch.maximum(p0, p1)
-    pivot = torch.where(hi, (p3 > p2) + 2, (p1 > p0).long())  # the first of the largest
-    rows = constant("pivot_rows", r)[pivot].t()  # (4, N)
+    rows = torch.where(  # (4, N), the rows of the first of the largest
+        hi,
+        torch.where(p3 > p2, tab["pivot_rows3"], tab["pivot_rows2"]),
+        torch.where(p1 > p0, tab["pivot_rows1"], tab["pivot_rows0"]),
+    )
     q = f.gather(0, rows)
     qw, qx, qy, qz = q.unbind(0)
     qv = q[1:]
     s2 = torch.addcmul(torch.addcmul(qx * qx, qy, qy), qz, qz)
     cw = qw.abs()
-    k = nx.atan2_over_s(s2, cw)
+    if nx.records(s2):  # (cw derives from the same q)
+        k = nx.atan2_over_s(s2, cw)
+    else:  # its closed form, as it computes it when nothing records
+        s = torch.clamp_min(s2, torch.finfo(s2.dtype).eps ** 2).sqrt()
+        k = torch.atan2(s, cw) / s
     # copysign(k, qw) for k > 0, written with ops that export to ONNX (copysign lowers to
     # signbit, which has none): 1 / qw keeps the sign bit of qw, -0.0 included (-inf).
-    neg = torch.reciprocal(qw.detach()) < 0
+    neg = torch.reciprocal(_values(qw)) < 0
     ks = torch.where(neg, -k, k)
-    out = torch.mm((ks * qv).t(), constant("two", r)).reshape(*r.shape[:-2], 3)
+    out = torch.mm((ks * qv).t(), tab["two"]).reshape(*r.shape[:-2], 3)
     if not derivative:
         return out, None
     # d k / d s2 and d k / d|w| of k = atan2(s, c) / s: (c / (s2 + c^2) - k) / (2 s2) loses
     # digits to cancellation at small s, but it multiplies q_xyz <q_xyz, g>, of size s^2 |g|:
     # the product keeps an absolute error of a few eps |g|
     recip = torch.reciprocal(s2 + cw * cw)
-    k_s2 = (cw * recip - k) / (2.0 * s2.clamp(min=torch.finfo(s2.dtype).tiny))
-    sigma = torch.where(neg, -4.0, 4.0)
+    k_s2 = (cw * recip - k) / (2.0 * torch.clamp_min(s2, torch.finfo(s2.dtype).tiny))
+    e = torch.where(neg, tab["minus_four"], tab["four"]) * k_s2
     # abs' derivative at w = 0 is 0 (autograd's sgn)
-    coef = torch.stack((2.0 * ks, sigma * k_s2, -2.0 * recip * torch.sign(qw).abs()))
-    return out, (rows, q, coef)
+    return out, (rows, qv, 2.0 * ks, e, -2.0 * recip * torch.sign(qw).abs())
 
 
-def _log_grad(r_shape, rows, q, coef, grad):
+def _log_grad(r_shape, rows, qv, k2, e, h, grad):
     """``d/dr <g, log(r)>``: the chain rule back to ``q``, scattered to the candidate table's
     rows the pivot picked, then through the table to the entries of ``r``."""
-    g = grad.reshape(-1, 3).t()  # (3, N)
-    k2, e, h = coef.unbind(0)
-    qv = q[1:]
+    return _log_grad_rows(rows, qv, k2, e, h, grad).t().reshape(r_shape)
+
+
+def _log_grad_rows(rows, qv, k2, e, h, grad):
+    """:func:`_log_grad` as ``(9, N)``, row ``3 i + j`` the derivative by ``r_ij``."""
+    g = (grad if grad.dim() == 2 else grad.reshape(-1, 3)).t()  # (3, N)
     d = (g * qv).sum(0)
     gq = torch.cat(((h * d).unsqueeze(0), torch.addcmul(k2 * g, qv, e * d)))  # (4, N)
     gf = torch.zeros(10, gq.shape[1], dtype=gq.dtype, device=gq.device).scatter_(0, rows, gq)
-    return torch.mm(constant("quat_table_t", grad), gf).t().reshape(r_shape)
+    return torch.mm(_tables(grad)["quat_table_t"], gf)
 
 
 class _Log(torch.autograd.Function):
@@ -334,16 +406,21 @@ def _rminus_formula(y, x):
 
 def rminus_values(y: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, tuple]:
     """``(log(x^T y), saved)``: the value and what :func:`rminus_grads` reads (no graph)."""
-    out, saved = _log_parts(torch.matmul(x.transpose(-1, -2), y), derivative=True)
+    out, saved = _log_parts(_matmul(x.transpose(-1, -2), y), derivative=True)
     return out, saved
 
 
 def rminus_grads(y: torch.Tensor, x: torch.Tensor, saved: tuple, grad: torch.Tensor,
                  needs=(True, True)):
     """``(d/dy, d/dx) <g, log(x^T y)>``: ``x G_D`` and ``y G_D^T``, ``G_D`` the logarithm's."""
+    if grad.dim() == 2:  # a batch of one dimension: G_D and G_D^T as views of the rows
+        rows = _log_grad_rows(*saved, grad).view(3, 3, -1)
+        gy = torch.bmm(x, rows.permute(2, 0, 1)) if needs[0] else None
+        gx = torch.bmm(y, rows.permute(2, 1, 0)) if needs[1] else None
+        return gy, gx
     gd = _log_grad(grad.shape[:-1] + (3, 3), *saved, grad)
-    gy = torch.matmul(x, gd) if needs[0] else None
-    gx = torch.matmul(y, gd.transpose(-1, -2)) if needs[1] else None
+    gy = _matmul(x, gd) if needs[0] else None
+    gx = _matmul(y, gd.transpose(-1, -2)) if needs[1] else None
     return gy, gx
 
 

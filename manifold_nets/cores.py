@@ -112,10 +112,14 @@ class GRUCore(RecurrentCore):
         ]
 
     def step(self, inp: torch.Tensor, hidden: Hidden) -> tuple[torch.Tensor, Hidden]:
+        # nn.GRU's own list of its parameters (w_ih, w_hh, b_ih, b_hh per layer, kept current
+        # by the module): no attribute lookup by name per step
+        w = self.gru._flat_weights if not torch.compiler.is_compiling() else None
         out = []
         h = inp
-        for (w_ih, w_hh, b_ih, b_hh), h_prev in zip(self._layers(), hidden):
-            h = torch.gru_cell(h, h_prev, w_ih, w_hh, b_ih, b_hh)
+        for i, h_prev in enumerate(hidden):
+            p = w[4 * i : 4 * i + 4] if w is not None else self._layers()[i]
+            h = torch.gru_cell(h, h_prev, *p)
             out.append(h)
         return self.head(h), tuple(out)
 

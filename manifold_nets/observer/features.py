@@ -21,9 +21,13 @@ from __future__ import annotations
 
 import torch
 
+from .fused import cast
 from .piece import Piece, check_factor
 
-__all__ = ["Feature", "Embedding", "Readings", "Innovation", "Rotated", "FramedInnovation"]
+__all__ = [
+    "Feature", "Embedding", "Readings", "Innovation", "Rotated", "FramedInnovation",
+    "reads_as_one",
+]
 
 
 def _spans(owner: str, value) -> tuple[tuple[int, int], ...]:
@@ -94,7 +98,7 @@ class Embedding(_Dropping):
         e = self.update.embed(view.x)
         if self.keep is not None:
             e = e.index_select(-1, self.keep)
-        return e.to(view.yu.dtype)
+        return cast(e, view.yu.dtype)
 
 
 class Readings(_Dropping):
@@ -240,3 +244,21 @@ class FramedInnovation(Feature):
             for i, rs in self._frames
         ]
         return out[0] if len(out) == 1 else torch.cat(out, dim=-1)
+
+
+def reads_as_one(observer) -> bool:
+    """Whether ``observer``'s step can read its features as one autograd node
+    (:class:`~manifold_nets.observer.measurement.DeferredView`): they are the embedding (flat),
+    the readings (nothing dropped) and the innovation, in that order, of a fusable measurement,
+    and the plain head reads nothing else of the step. Decided once, when it is built."""
+    from .heads import PlainHead
+    from .measurement import Measurement
+
+    return (
+        [type(f) for f in observer.features] == [Embedding, Readings, Innovation]
+        and observer.group.embedding_is_flat
+        and all(f.keep is None for f in observer.features[:2])
+        and type(observer.measurement) is Measurement  # (a robust one makes its own view)
+        and observer.measurement._fused
+        and type(observer.head) is PlainHead
+    )

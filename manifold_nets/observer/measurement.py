@@ -19,20 +19,17 @@ Per step the measurement makes the :class:`StepView` every feature and head read
 from __future__ import annotations
 
 from collections.abc import Mapping
-from dataclasses import dataclass
-
 import torch
 
 from groups.so3_kernels import records
 
-from .fused import fusable_innovations, fused_innovations
+from .fused import fusable_innovations, fused_features, fused_innovations, gradient_layout
 from .piece import Piece, check_factor, check_int, check_number, check_spans
 from .robust import MAX_SIZE, RobustWeights, safe_norm
 
-__all__ = ["Measurement", "RobustMeasurement", "StepView"]
+__all__ = ["DeferredView", "Measurement", "RobustMeasurement", "StepView"]
 
 
-@dataclass
 class StepView:
     """What one step's features and heads read.
 
@@ -40,13 +37,25 @@ class StepView:
     ``(B, l + m)`` in the network dtype (measured columns as the core reads them); ``nu``: the
     innovations ``(B, tangent_dim_f)`` per measured factor, in the network dtype; ``nu_flat``
     (when the measurement made them at once) the same concatenated, ``(B, innovation_dim)``.
+    Given ``nu_flat`` and ``nu=None``, ``nu`` is split from it when first read (the paper's
+    head and the innovation feature read ``nu_flat`` only: no split, no autograd node).
     """
 
-    x: torch.Tensor
-    yu: torch.Tensor
-    nu: list[torch.Tensor]
-    measurement: Measurement
-    nu_flat: torch.Tensor | None = None
+    __slots__ = ("x", "yu", "_nu", "measurement", "nu_flat")
+
+    def __init__(self, x: torch.Tensor, yu: torch.Tensor, nu: list[torch.Tensor] | None,
+                 measurement: Measurement, nu_flat: torch.Tensor | None = None):
+        self.x, self.yu, self._nu, self.measurement, self.nu_flat = x, yu, nu, measurement, nu_flat
+
+    @property
+    def nu(self) -> list[torch.Tensor]:
+        if self._nu is None:
+            self._nu = list(self.nu_flat.split(self.measurement._widths, dim=-1))
+        return self._nu
+
+    def cat_features(self, features) -> torch.Tensor:
+        """The core's input ``z = cat(f(self) for f in features)``."""
+        return torch.cat([f(self) for f in features], dim=-1)
 
     def exact(self) -> StepView:
         """The view had each measured factor been measured exactly at its prediction: the
@@ -58,6 +67,42 @@ class StepView:
                 self.x.shape[0], -1
             ).to(yu.dtype)
         return StepView(self.x, yu, [torch.zeros_like(nu) for nu in self.nu], m)
+
+
+class DeferredView(StepView):
+    """A :class:`StepView` whose innovations are made when first read (by
+    :meth:`Measurement.view`), for an observer whose features are the paper's embedding and
+    readings and the innovation feature, over a fusable measurement, and whose head reads
+    nothing else (:func:`~manifold_nets.observer.features.reads_as_one`): its
+    :meth:`cat_features` makes them all as one autograd node
+    (:func:`~manifold_nets.observer.fused.fused_features`), the same values."""
+
+    __slots__ = ("_measured", "_made")
+
+    def __init__(self, x, yu, measurement, measured):  # (nu_flat is a property here)
+        self.x, self.yu, self.measurement, self._measured, self._made = (
+            x, yu, measurement, measured, None)
+
+    def _view(self) -> StepView:
+        if self._made is None:
+            self._made = self.measurement.view(self.x, self.yu, self._measured)
+        return self._made
+
+    @property
+    def nu(self) -> list[torch.Tensor]:
+        return self._view().nu
+
+    @property
+    def nu_flat(self) -> torch.Tensor | None:
+        return self._view().nu_flat
+
+    def cat_features(self, features) -> torch.Tensor:
+        # (not while torch.compile traces: dynamo refuses one tensor given twice to a Function)
+        if (self._made is None and self.measurement._fused and records(self.x)
+                and not torch.compiler.is_compiling()):
+            return fused_features(self.measurement, self.x, self.yu, self._measured)
+        self._view()  # the innovations first, as Measurement.view makes them
+        return super().cat_features(features)
 
 
 class Measurement(Piece):
@@ -94,6 +139,7 @@ class Measurement(Piece):
         self.innovation_dim = sum(group.factor(n).tangent_dim for n in self.factors)
         self._widths = [f.tangent_dim for f, _, _ in self.spans]
         self._fused = fusable_innovations(self)
+        self._layout = gradient_layout(self) if self._fused else ()
         return self
 
     def settings(self) -> dict:
@@ -112,12 +158,16 @@ class Measurement(Piece):
             for (f, xs, _), m in zip(self.spans, measured)
         ]
 
+    def deferred_view(self, x: torch.Tensor, yu: torch.Tensor, measured) -> StepView:
+        """:meth:`view`, its innovations made when first read (:class:`DeferredView`)."""
+        return DeferredView(x, yu, self, measured)
+
     def view(self, x: torch.Tensor, yu: torch.Tensor, measured) -> StepView:
         """The step's view at the prediction ``x`` (flat, state dtype) of ``(y, u)`` ``yu``
         (network dtype) and the measured elements ``measured`` (state dtype)."""
         if self._fused and records(x):  # one autograd node for them all (.fused)
             flat = fused_innovations(self, x, measured, yu.dtype)
-            return StepView(x, yu, list(flat.split(self._widths, dim=-1)), self, flat)
+            return StepView(x, yu, None, self, flat)  # nu split when read
         nu = self.innovations(x, measured)
         return StepView(x, yu, [n.to(yu.dtype) for n in nu], self)
 

@@ -36,7 +36,7 @@ from groups import LieGroup
 from ..cores import GRUCore, Hidden, RecurrentCore
 from .checks import check_sequences, check_start, check_step_args
 from .compiling import compiled
-from .features import Embedding, Feature, Readings
+from .features import Embedding, Feature, Readings, reads_as_one
 from .heads import Head, PlainHead
 from .measurement import Measurement
 from .priors import NoPrior, Prior
@@ -129,6 +129,7 @@ class ResidualObserver(nn.Module):
                 "kinematic one) or use the plain head."
             )
         self.core = self._core(core)
+        self._view = self.measurement.deferred_view if reads_as_one(self) else self.measurement.view
         self._timed = [self.head, *self.scales]
         self._compiled_step = None
 
@@ -222,14 +223,14 @@ class ResidualObserver(nn.Module):
         network dtype, ``ys`` the same in the state dtype, ``measured`` the measured elements,
         ``timed`` the step's :meth:`schedule` entry. Returns ``(x_{k+1}, hidden)``."""
         x = self.prior(x, yu, ys)
-        view = self.measurement.view(x, yu, measured)
+        view = self._view(x, yu, measured)  # (measurement.view, or deferred: features.reads_as_one)
         v, hidden = self.head(self.core, self._features, view, hidden, timed[0])
         for scale, d in zip(self.scales, timed[1:]):
             v = scale(v, d)
         return self.update(x, v), hidden  # the update casts v to the state dtype
 
     def _features(self, view) -> torch.Tensor:
-        return torch.cat([f(view) for f in self.features], dim=-1)
+        return view.cat_features(self.features)  # cat(f(view) for f in self.features)
 
     def init_state(self, batch: int, device=None) -> ObserverState:
         """The state before the first step: the identity and the core's initial hidden state."""
