@@ -38,9 +38,13 @@ from . import simulator  # noqa: F401  (registers BroadSimulator for load_observ
 from .data import BroadFormatError, Trial, read_trials, split_trials, trials_to_dataset
 from .learning import estimate_rotations
 from .metric import matrix_to_quat, rmse
+from .prefilter import prefiltered
 from .rate import decimate, upsample
 
-__all__ = ["pad_trials", "observer_quaternions", "check_scored", "chosen_splits", "evaluate_run"]
+__all__ = [
+    "pad_trials", "observer_quaternions", "check_scored", "chosen_splits", "evaluate_run",
+    "input_settings",
+]
 
 log = logging.getLogger("broad.evaluate")
 
@@ -78,14 +82,18 @@ def observer_quaternions(
     observer, system, trials: list[Trial], source: str = "the observer"
 ) -> list[np.ndarray]:
     """The observer's quaternions ``(T_i, 4)`` per trial, one per sample (between the
-    observer's steps, the gyroscope integrated from its last estimate: :mod:`.rate`).
+    observer's steps, the gyroscope integrated from its last estimate: :mod:`.rate`), reading
+    the trials as the system says (:func:`input_settings`): a 6-D observer reads no
+    magnetometer and starts from the tilt; pre-filtered readings by :mod:`.prefilter`.
 
     ``ValueError`` naming ``source`` and the trial where an estimate is NaN or Inf (NaN
     weights, a diverging observer): a file of NaN quaternions is never the answer."""
-    batch, lengths = pad_trials(trials)
+    reads = input_settings(system)
+    batch, lengths = pad_trials(
+        [prefiltered(t, reads["acc_lowpass"], reads["rest_bias"]) for t in trials])
     k = decimation(system, trials[0].rate)
     dt = 1.0 / trials[0].rate
-    R = estimate_rotations(observer, system, decimate(batch, k, dt))
+    R = estimate_rotations(observer, system, decimate(batch, k, dt), reads["magnetometer"])
     R = upsample(R, batch.inputs.to(R), dt, k)
     q = matrix_to_quat(R.numpy())
     out = [q[i, :n] for i, n in enumerate(lengths)]
@@ -132,7 +140,18 @@ def _save_npz(path: Path, arrays: dict) -> None:
         f.write(buf.getvalue())
 
 
-def evaluate_run(run: str | Path, data_dir=None, split_file=None, splits=("val", "test")) -> dict:
+def input_settings(system) -> dict:
+    """How the observer of ``system`` reads a recording (its config's ``magnetometer``,
+    ``acc_lowpass`` and ``rest_bias``; a system without them, such as one loaded from an older
+    run, reads the raw 9-D readings)."""
+    return {"magnetometer": bool(getattr(system, "magnetometer", True)),
+            "acc_lowpass": float(getattr(system, "acc_lowpass", 0.0)),
+            "rest_bias": bool(getattr(system, "rest_bias", False))}
+
+
+def evaluate_run(
+    run: str | Path, data_dir=None, split_file=None, splits=("val", "test")
+) -> dict:
     """Evaluates the run's observer on whole trials of ``splits``; returns ``{split: rows}``."""
     run = Path(run)
     default_dir, split = split_trials(split_file)

@@ -46,7 +46,11 @@ __all__ = [
     "measured_start",
     "near_truth_start",
     "RandomMounting",
+    "RandomHeading",
     "estimate_rotations",
+    "tilt",
+    "tilt_start",
+    "without_magnetometer",
 ]
 
 _SO3 = SO3()
@@ -88,7 +92,44 @@ def measured_start(system: BroadSimulator):
     return start
 
 
-def near_truth_start(system: BroadSimulator, angle_std: float = 0.05):
+def tilt(acc: torch.Tensor) -> torch.Tensor:
+    """``(*batch, 3) -> (*batch, 3, 3)``: the smallest rotation that turns the accelerometer's
+    direction to "up" (``R a / |a| = e_z``): the attitude a 6-D filter can know from one sample,
+    its heading arbitrary (that of the shortest turn). Upside down (``a`` within 1e-6 of
+    ``-e_z``) it turns by pi about the body's x axis."""
+    a = acc.to(torch.float64)
+    a = a / a.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    up = torch.zeros_like(a)
+    up[..., 2] = 1.0
+    axis = torch.linalg.cross(a, up)
+    s, c = axis.norm(dim=-1, keepdim=True), a[..., 2:3]
+    flipped = (s < 1e-6) & (c < 0)
+    safe = torch.where(s < 1e-12, torch.ones_like(s), s)  # "double where": no 0/0 anywhere
+    turn = axis / safe * torch.atan2(s, c)
+    turn = torch.where(flipped, torch.tensor([math.pi, 0.0, 0.0], dtype=a.dtype), turn)
+    return _SO3.exp(turn).to(acc.dtype)
+
+
+def without_magnetometer(data: TrajectoryDataset) -> TrajectoryDataset:
+    """``data`` with the magnetometer columns of ``y`` (3:6) set to zero: what a 6-D observer
+    (gyroscope and accelerometer only) is trained and run on. A constant input carries no
+    information, so the 9-D observer's shape serves the 6-D one unchanged."""
+    y = data.measurements.clone()
+    y[..., 3:6] = 0.0
+    return TrajectoryDataset(data.states, y, data.inputs, data.meta, data.mask)
+
+
+def tilt_start(system: BroadSimulator):
+    """``batch -> (B, 3, 3)``: :func:`tilt` of the batch's first accelerometer reading, the
+    6-D counterpart of :func:`measured_start` (``system``: for the same signature)."""
+
+    def start(batch: TrajectoryDataset) -> torch.Tensor:
+        return tilt(batch.measurements[:, 0, :3])
+
+    return start
+
+
+def near_truth_start(system: BroadSimulator, angle_std: float = 0.05, magnetometer: bool = True):
     """``batch -> (B, 3, 3)``: the true first state turned by a random rotation of
     ``N(0, angle_std^2)`` per axis (radians), or TRIAD where the reference is missing.
 
@@ -96,8 +137,9 @@ def near_truth_start(system: BroadSimulator, angle_std: float = 0.05):
     converged, to a few degrees, so a window that starts from TRIAD of one sample in motion (off
     by up to ~20 deg through the linear acceleration) would teach it to converge rather than to
     track. The perturbation is a function of the batch (seeded by its first states), so the
-    validation loss of a model is the same at every epoch."""
-    triad = measured_start(system)
+    validation loss of a model is the same at every epoch. Without the ``magnetometer`` the
+    fallback is :func:`tilt_start`."""
+    triad = measured_start(system) if magnetometer else tilt_start(system)
 
     def start(batch: TrajectoryDataset) -> torch.Tensor:
         x0 = batch.states[:, 0]
@@ -139,16 +181,35 @@ class RandomMounting:
         return TrajectoryDataset(states, y, u, batch.meta, batch.mask)
 
 
+class RandomHeading:
+    """The augmentation for a 6-D observer: the world turned about "up" by a uniform random
+    angle per sequence, ``R' = R_z(psi) R``. The readings (body frame) are unchanged: without a
+    magnetometer nothing tells one heading from another, and the observer, which reads its own
+    estimate, must not learn the lab's headings."""
+
+    def __call__(self, batch: TrajectoryDataset, generator: torch.Generator) -> TrajectoryDataset:
+        psi = 2 * math.pi * torch.rand(len(batch), 1, generator=generator, dtype=torch.float64)
+        turn = torch.cat((torch.zeros(len(batch), 2, dtype=torch.float64), psi), -1)
+        Rz = _SO3.exp(turn).to(batch.states)
+        states = Rz[:, None] @ batch.states
+        return TrajectoryDataset(states, batch.measurements, batch.inputs, batch.meta, batch.mask)
+
+
 @torch.inference_mode()
 def estimate_rotations(
-    observer: ResidualObserver, system: BroadSimulator, data: TrajectoryDataset
+    observer: ResidualObserver, system: BroadSimulator, data: TrajectoryDataset,
+    magnetometer: bool = True,
 ) -> torch.Tensor:
     """The observer over whole sequences from their first sample: ``(N, T+1, 3, 3)`` float64.
 
     Estimate 0 is TRIAD of the first measurement (the readings one observer step later), then
-    one estimate per step."""
+    one estimate per step. Without the ``magnetometer``: its columns zeroed
+    (:func:`without_magnetometer`) and started from :func:`tilt`."""
     observer.eval()
-    x0 = measured_start(system)(data).to(device=observer.device, dtype=observer.state_dtype)
+    if not magnetometer:
+        data = without_magnetometer(data)
+    first = measured_start(system) if magnetometer else tilt_start(system)
+    x0 = first(data).to(device=observer.device, dtype=observer.state_dtype)
     state = ObserverState(x0, observer.core.initial_hidden(len(data), device=observer.device))
     est = observer(data.measurements, data.inputs, state=state)
     return est.cpu().to(torch.float64)

@@ -5,6 +5,11 @@
   heading, 0.66 inclination, the figures the issue quotes); ``offline=True`` runs
   ``vqf.offlineVQF`` instead (acausal, it uses future samples: 2.03 / 1.93 / 0.51). Its earth
   frame is ENU like BROAD's reference, the quaternions are used as they come.
+* :func:`vqf_6d`: the same online ``vqf.VQF`` fed the gyroscope and accelerometer only, its
+  ``quat6D`` output (heading arbitrary: scored on inclination only).
+* :func:`riann_6d`: RIANN (Weber, Guehmann and Seel, AI 2(3):444, 2021), the trained network
+  of the ``riann`` package (ONNX, run by ``onnxruntime``) over each whole trial at its rate,
+  gyroscope and accelerometer only (heading arbitrary: scored on inclination only).
 * :func:`madgwick`, :func:`mahony`: the ``ahrs`` package's filters (pure Python, ~0.7 ms per
   sample). Their earth frames differ (checked on trial 01 and in their source, ahrs 0.4):
   Madgwick's magnetic reference is ``(b_x, 0, b_z)``, x north and z up, so North-West-Up and
@@ -14,7 +19,8 @@
 * :func:`published`: the BROAD authors' own per-trial RMSE for Madgwick and Mahony at their
   tuned gains (``published/results_{madgwick,mahony}_average_rmse.json``).
 
-``vqf`` and ``ahrs`` are optional: ``pip install 'manifold_nets[broad]'``.
+``vqf``, ``ahrs`` and ``riann`` are optional: ``pip install 'manifold_nets[broad]'`` (``pip
+install riann`` for RIANN).
 Every estimator returns quaternions ``(T, 4)`` (w, x, y, z) in ENU per trial.
 """
 
@@ -30,7 +36,7 @@ from .data import Trial
 from .filters import initial_attitude
 from .metric import matrix_to_quat, quat_conj, quat_multiply
 
-__all__ = ["vqf_9d", "madgwick", "mahony", "published", "PUBLISHED_GAINS"]
+__all__ = ["vqf_9d", "vqf_6d", "riann_6d", "madgwick", "mahony", "published", "PUBLISHED_GAINS"]
 
 #: the gains of the BROAD authors' published rows (``tagp_parameters`` of the JSON files)
 PUBLISHED_GAINS = {"madgwick": {"beta": 0.12}, "mahony": {"Kp": 0.74, "Ki": 0.0012}}
@@ -60,6 +66,33 @@ def vqf_9d(trials: list[Trial], offline: bool = False) -> list[np.ndarray]:
         else:
             res = vqf.VQF(1.0 / t.rate).updateBatch(*args)
         out.append(np.asarray(res["quat9D"], dtype=np.float64))
+    return out
+
+
+def vqf_6d(trials: list[Trial]) -> list[np.ndarray]:
+    """VQF 6-D (no magnetometer), default parameters, online: ``quat6D`` ``(T, 4)`` each."""
+    vqf = _need("vqf")
+    out = []
+    for t in trials:
+        gyr, acc = (np.ascontiguousarray(a, dtype=np.float64) for a in (t.gyr, t.acc))
+        out.append(np.asarray(vqf.VQF(1.0 / t.rate).updateBatch(gyr, acc)["quat6D"], np.float64))
+    return out
+
+
+def riann_6d(trials: list[Trial]) -> list[np.ndarray]:
+    """RIANN (``riann.RIANN().predict``, the whole trial at once, which equals its step-by-step
+    use): ``(T, 4)`` unit quaternions each."""
+    riann = _need("riann")
+    ort = _need("onnxruntime")
+    onnx = str(Path(riann.__file__).parent / "riann.onnx")  # its own default lookup fails
+    net = riann.RIANN(onnx)
+    opts = ort.SessionOptions()
+    opts.intra_op_num_threads = opts.inter_op_num_threads = 1  # one thread, like every row
+    net.session = ort.InferenceSession(onnx, opts)
+    out = []
+    for t in trials:
+        q = np.asarray(net.predict(t.acc, t.gyr, t.rate), dtype=np.float64)
+        out.append(q / np.linalg.norm(q, axis=1, keepdims=True))
     return out
 
 

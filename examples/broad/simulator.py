@@ -173,6 +173,9 @@ class BroadSimulator(System):
         world_disturbance_probability: float = 0.25,
         world_disturbance_rms: float = 0.25,
         world_disturbance_freq=(0.1, 1.0),
+        magnetometer: bool = True,
+        acc_lowpass: float = 0.0,
+        rest_bias: bool = False,
     ):
         self.dt = _number("dt (the step length in seconds)", dt, positive=True)
         self._init_motion(level_fraction, tilt_max_deg, omega_rms, omega_freq, num_terms,
@@ -200,7 +203,20 @@ class BroadSimulator(System):
         self.world_disturbance_freq = _range("world_disturbance_freq (Hz)",
                                              world_disturbance_freq)
         check_frequencies(_OWNER, *self.world_disturbance_freq, self.dt)
+        self._init_readings(magnetometer, acc_lowpass, rest_bias)
         self.group = SO3()
+
+    def _init_readings(self, magnetometer, acc_lowpass, rest_bias) -> None:
+        """How a learned observer of this system reads the recordings (:mod:`.prefilter`,
+        :func:`.evaluate.input_settings`), kept in the system's config so that a trained
+        observer's files say it: with or without the ``magnetometer`` (a 6-D observer), the
+        accelerometer low-passed over ``acc_lowpass`` seconds (0: raw), the gyroscope less its
+        ``rest_bias``. The simulation itself is unchanged by them."""
+        for name, flag in (("magnetometer", magnetometer), ("rest_bias", rest_bias)):
+            if not isinstance(flag, bool):
+                raise ValueError(f"{_OWNER}: {name} must be true or false, got {flag!r}.")
+        self.magnetometer, self.rest_bias = magnetometer, rest_bias
+        self.acc_lowpass = _number("acc_lowpass (s)", acc_lowpass)
 
     def _init_motion(self, level_fraction, tilt_max_deg, omega_rms, omega_freq, num_terms,
                      max_rate, rest_probability, rest_duration, rest_ramp) -> None:
@@ -232,6 +248,8 @@ class BroadSimulator(System):
         for key in _CONFIG_KEYS:
             v = getattr(self, key)
             out[key] = list(v) if isinstance(v, tuple) else v
+        out.update({k: getattr(self, k) for k, v in _READING_DEFAULTS.items()
+                    if getattr(self, k) != v})  # fmt: skip
         return out
 
     def magnetic_field(self, dtype=_DTYPE, device=None) -> torch.Tensor:
@@ -392,3 +410,7 @@ _CONFIG_KEYS = (
     "hard_iron_probability", "hard_iron_range", "world_disturbance_probability",
     "world_disturbance_rms", "world_disturbance_freq",
 )
+#: How an observer reads the recordings (:meth:`BroadSimulator._init_readings`): in the config
+#: only where they differ from these defaults (the raw 9-D readings), so configs written before
+#: them (``configs/system/broad_sim.yaml``, the first zoo entry) are still the whole config.
+_READING_DEFAULTS = {"magnetometer": True, "acc_lowpass": 0.0, "rest_bias": False}

@@ -52,7 +52,15 @@ from manifold_nets.training import check_settings
 
 from .data import BroadFormatError, read_trials, split_trials, trials_to_dataset
 from .evaluate import check_scored, chosen_splits, evaluate_run
-from .learning import RandomMounting, make_observer, model_config, near_truth_start
+from .learning import (
+    RandomHeading,
+    RandomMounting,
+    make_observer,
+    model_config,
+    near_truth_start,
+    without_magnetometer,
+)
+from .prefilter import prefilter_dataset, prefiltered
 from .rate import decimate
 from .simulator import BROAD_DT, BroadSimulator
 
@@ -78,6 +86,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--finetune-epochs", type=int, default=10, help="0: no fine-tuning")
     p.add_argument("--mounting", type=float, default=3.141592653589793,
                    help="max angle (rad) of the random mounting; 0: no augmentation")
+    p.add_argument("--magnetometer", type=int, choices=(0, 1), default=1,
+                   help="0: a 6-D observer (gyroscope and accelerometer; the magnetometer "
+                        "columns zeroed, starts from the tilt, random headings in training)")
+    p.add_argument("--acc-lowpass", type=float, default=0.0,
+                   help="seconds: the accelerometer low-passed in a gyro-strapdown frame "
+                        "(prefilter.py) before the observer reads it; 0: raw")
+    p.add_argument("--rest-bias", type=int, choices=(0, 1), default=0,
+                   help="1: the gyroscope's bias from rest removed before the observer reads it "
+                        "(prefilter.py)")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--start-std", type=float, default=0.05,
@@ -114,6 +131,8 @@ def check_args(args) -> None:
     for flag in ("output_scale", "lr"):
         if not (math.isfinite(getattr(args, flag)) and getattr(args, flag) > 0):
             raise bad("--" + flag.replace("_", "-"), "a finite number > 0", getattr(args, flag))
+    if not (math.isfinite(args.acc_lowpass) and args.acc_lowpass >= 0):
+        raise bad("--acc-lowpass", "a finite number >= 0 (seconds; 0: raw)", args.acc_lowpass)
     if not (math.isfinite(args.start_std) and args.start_std >= 0):
         raise bad("--start-std", "a finite number >= 0 (radians)", args.start_std)
     if not 0 <= args.mounting <= math.pi:
@@ -137,12 +156,17 @@ def pretrain(args, system, model, out: Path, config: dict) -> Path:
     gen = torch.Generator().manual_seed(args.seed)
     n, k = args.pretrain_sequences, args.decimation
     full_rate = BroadSimulator()  # this IMU at 285.7 Hz, decimated like the recordings
-    data = decimate(full_rate.simulate(n, args.pretrain_length * k, 1.0, gen), k, BROAD_DT)
+    data = prefilter_dataset(full_rate.simulate(n, args.pretrain_length * k, 1.0, gen), BROAD_DT,
+                             args.acc_lowpass, bool(args.rest_bias))
+    data = decimate(data, k, BROAD_DT)
     n_val = max(1, n // 8)
+    if not args.magnetometer:
+        data = without_magnetometer(data)
     train, val = data[n_val:], data[:n_val]
     res = fit(
         model, train, val, settings(args, args.pretrain_epochs), out_dir=out / "pretrain",
-        seed=args.seed, start=near_truth_start(system, args.start_std), config=config,
+        seed=args.seed, start=near_truth_start(system, args.start_std, bool(args.magnetometer)),
+        config=config, augment=None if args.magnetometer else RandomHeading(),
     )
     log.info("pretrain: best val loss %.4g at epoch %d", res.best_val_loss, res.best_epoch)
     return res.best_path
@@ -159,7 +183,26 @@ def windows(args, trials: dict) -> tuple:
         raise BroadFormatError(
             f"--window {args.window} x --decimation {k} = {args.window * k} samples: {err}"
         ) from None
-    return decimate(train, k, BROAD_DT), decimate(val, k, BROAD_DT)
+    train, val = decimate(train, k, BROAD_DT), decimate(val, k, BROAD_DT)
+    if not args.magnetometer:
+        train, val = without_magnetometer(train), without_magnetometer(val)
+    return train, val
+
+
+def augmentation(args):
+    """The training batches' augmentation: the random mounting (``--mounting``), then for a
+    6-D observer a random heading (:class:`~.learning.RandomHeading`); ``None`` for neither."""
+    steps = ([RandomMounting(args.mounting)] if args.mounting > 0 else []) + (
+        [] if args.magnetometer else [RandomHeading()])
+    if not steps:
+        return None
+
+    def augment(batch, generator):
+        for step in steps:
+            batch = step(batch, generator)
+        return batch
+
+    return augment
 
 
 def finetune(args, system, model, out: Path, data: tuple, config: dict) -> Path:
@@ -168,10 +211,11 @@ def finetune(args, system, model, out: Path, data: tuple, config: dict) -> Path:
     train, val = data
     log.info("finetune: %d training windows, %d validation windows of %d samples",
              len(train), len(val), args.window)
-    augment = RandomMounting(args.mounting) if args.mounting > 0 else None
+    augment = augmentation(args)
     res = fit(
         model, train, val, settings(args, args.finetune_epochs), out_dir=out / "finetune",
-        seed=args.seed, start=near_truth_start(system, args.start_std), augment=augment,
+        seed=args.seed, start=near_truth_start(system, args.start_std, bool(args.magnetometer)),
+        augment=augment,
         config=config,
     )
     log.info("finetune: best val loss %.4g at epoch %d", res.best_val_loss, res.best_epoch)
@@ -203,9 +247,13 @@ def prepare(args) -> dict:
         raise BroadFormatError(f"{args.split or 'configs/broad/trials.yaml'}: fine-tuning needs "
                                f"the split(s) {missing}; the file has {sorted(split)}.")
     trials = {s: read_trials(args.data_dir, split[s]) for s in dict.fromkeys(stages + evaluated)}
+    trials = {s: [prefiltered(t, args.acc_lowpass, bool(args.rest_bias)) for t in ts]
+              for s, ts in trials.items()}
     for s in evaluated:
         check_scored(trials[s], f"--eval-splits {s}")
-    system = BroadSimulator(dt=args.decimation * BROAD_DT)  # the observer's step
+    system = BroadSimulator(  # the observer's step, and how it reads the recordings
+        dt=args.decimation * BROAD_DT, magnetometer=bool(args.magnetometer),
+        acc_lowpass=args.acc_lowpass, rest_bias=bool(args.rest_bias))
     model_cfg = model_config(args.hidden_size, args.num_layers, args.output_scale)
     model = make_observer(system, model_cfg, args.seed)
     for epochs in (args.pretrain_epochs, args.finetune_epochs):

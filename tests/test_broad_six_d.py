@@ -1,0 +1,287 @@
+"""The 6-D path on BROAD and its pieces: the tilt start, the random heading, the observer without
+a magnetometer, the accelerometer pre-filter, the heading cascade, the 6-D reference rows and the
+``broad.six_d`` command, on the committed excerpt (tests/fixtures/broad/, 2000 samples of trial
+01, CC-BY-4.0, see ATTRIBUTION.md) and on constructed cases."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from groups import SO3
+from manifold_nets_examples.broad import six_d
+from manifold_nets_examples.broad import train as train_cmd
+from manifold_nets_examples.broad.data import read_trial, trials_to_dataset
+from manifold_nets_examples.broad.evaluate import input_settings
+from manifold_nets_examples.broad.learning import RandomHeading, tilt, without_magnetometer
+from manifold_nets_examples.broad.metric import errors, matrix_to_quat, quat_multiply, rmse
+from manifold_nets_examples.broad.prefilter import (
+    OnlinePrefilter,
+    lowpass_acc,
+    prefilter_dataset,
+    rest_bias,
+    strapdown,
+)
+
+FIXTURE = Path(__file__).parent / "fixtures" / "broad" / "excerpt.mat"
+G = SO3()
+DT = 1 / 285.714
+
+
+@pytest.fixture(scope="module")
+def trial():
+    return read_trial(FIXTURE)
+
+
+def test_tilt_turns_the_accelerometer_to_up_by_the_shortest_turn():
+    gen = torch.Generator().manual_seed(0)
+    a = torch.randn(200, 3, generator=gen, dtype=torch.float64) * 4
+    a = torch.cat((a, torch.tensor([[0, 0, 9.81], [0, 0, -9.81], [1e-9, 0, -1.0]]).double()))
+    R = tilt(a)
+    G.check_member(R)
+    up = (R @ (a / a.norm(dim=-1, keepdim=True))[..., None])[..., 0]
+    assert torch.allclose(up, torch.tensor([0.0, 0, 1]).double().expand_as(up), atol=1e-9)
+    # the shortest turn: its angle is the angle between the reading and up
+    want = torch.acos((a[:, 2] / a.norm(dim=-1)).clamp(-1, 1))
+    assert torch.allclose(G.distance(R, torch.eye(3).double()), want, atol=1e-6)
+
+
+def test_random_heading_turns_the_world_about_up_and_nothing_else(trial):
+    ds = trials_to_dataset([trial], window=200, stride=300)
+    out = RandomHeading()(ds, torch.Generator().manual_seed(1))
+    assert torch.equal(out.measurements, ds.measurements) and torch.equal(out.inputs, ds.inputs)
+    G.check_member(out.states)
+    # "up" in the body frame, R^T e_z, is the same: the inclination cannot tell them apart
+    assert torch.allclose(out.states[..., 2, :], ds.states[..., 2, :], atol=1e-12)
+    turn = out.states[:, 0] @ ds.states[:, 0].transpose(-1, -2)
+    assert float(G.distance(turn, torch.eye(3).double()).std()) > 0.3  # headings differ
+    q, q0 = (matrix_to_quat(s[:, 1:].numpy()) for s in (out.states, ds.states))
+    moving = np.ones(q.shape[1], dtype=bool)
+    for a, b in zip(q, q0):
+        assert rmse(a, b, moving)["inclination"] < 1e-6
+
+
+def test_the_6d_observer_reads_no_magnetometer(trial):
+    ds = trials_to_dataset([trial], window=100, stride=100)
+    out = without_magnetometer(ds)
+    assert torch.equal(out.measurements[..., :3], ds.measurements[..., :3])
+    assert not out.measurements[..., 3:].any() and ds.measurements[..., 3:].abs().min() >= 0
+    assert torch.equal(out.states, ds.states)
+
+
+def test_the_prefilter_is_exact_for_gravity_alone_and_smooths_linear_acceleration():
+    rng = np.random.default_rng(0)
+    T = 6000
+    gyr = np.cumsum(rng.normal(0, 0.05, (T, 3)), 0)  # a smooth, turning motion
+    Q = strapdown(gyr, DT)
+    R_loop, loop = np.eye(3), []
+    for w in gyr[:50]:
+        R_loop = R_loop @ G.exp(torch.from_numpy(w * DT)).numpy()
+        loop.append(R_loop)
+    np.testing.assert_allclose(Q[:50], np.array(loop), atol=1e-12)
+    R0 = G.exp(torch.tensor([0.3, -0.2, 0.1]).double()).numpy()
+    world = np.einsum("ij,tjk->tik", R0, Q)  # body to world
+    gravity = np.einsum("tji,j->ti", world, [0.0, 0.0, 9.81])
+    np.testing.assert_allclose(lowpass_acc(gyr, gravity, 1 / DT, 1.0), gravity, atol=1e-9)
+    # linear acceleration of zero mean (1 Hz, 3 m/s^2 in the world frame)
+    t = np.arange(T) * DT
+    lin_w = 3.0 * np.stack((np.sin(2 * np.pi * t), np.cos(2 * np.pi * t), 0 * t), 1)
+    acc = gravity + np.einsum("tji,tj->ti", world, lin_w)
+    out = lowpass_acc(gyr, acc, 1 / DT, 1.0)
+    settled = slice(3 * 286, None)
+    raw_err = np.linalg.norm(acc - gravity, axis=1)[settled].mean()
+    err = np.linalg.norm(out - gravity, axis=1)[settled].mean()
+    assert err < 0.2 * raw_err
+    assert np.array_equal(lowpass_acc(gyr, acc, 1 / DT, 0.0), acc)
+    with pytest.raises(ValueError, match="time constant"):
+        lowpass_acc(gyr, acc, 1 / DT, -1.0)
+
+
+def test_the_rest_bias_is_the_gyroscope_at_rest_and_ignores_a_slow_steady_turn():
+    rng = np.random.default_rng(1)
+    rate, n = 285.714, 6000
+    bias = np.array([0.004, -0.002, 0.003])
+    gyr = bias + rng.normal(0, 0.002, (n, 3))
+    acc = np.array([0, 0, 9.81]) + rng.normal(0, 0.07, (n, 3))
+    gyr[3000:4000] += [0, 0, 0.05]  # a steady turn of 2.9 deg/s about up: not a rest
+    gyr[4000:] += rng.normal(0, 1.0, (2000, 3))  # motion
+    acc[4000:] += rng.normal(0, 2.0, (2000, 3))
+    b = rest_bias(gyr, acc, rate)
+    assert not b[:427].any()  # before the first full window of 1.5 s: no estimate
+    np.testing.assert_allclose(b[1000], bias, atol=3e-4)
+    np.testing.assert_allclose(b[-1], bias, atol=3e-4)  # the turn and the motion left it
+    # only the windows at the turn's start, mostly rest, enter the average: 0.02 deg/s at most
+    assert np.abs(b[3000:] - b[3000]).max() < 5e-4
+    causal = rest_bias(gyr[:2000], acc[:2000], rate)
+    np.testing.assert_array_equal(causal, b[:2000])  # the future never changes the past
+
+
+def test_the_prefilter_of_a_dataset_matches_that_of_its_trial(trial):
+    from manifold_nets_examples.broad.prefilter import prefiltered
+
+    import dataclasses
+
+    # the excerpt is in motion throughout (no rest, no bias): its first 800 samples made a rest
+    assert not rest_bias(trial.gyr, trial.acc, trial.rate).any()
+    gyr, acc = trial.gyr.copy(), trial.acc.copy()
+    gyr[:800], acc[:800] = [0.004, -0.002, 0.003], [0.0, 0.0, 9.81]
+    trial = dataclasses.replace(trial, gyr=gyr, acc=acc)
+    ds = trials_to_dataset([trial])
+    out = prefilter_dataset(ds, 1 / trial.rate, 0.1, rest=True)
+    want = trials_to_dataset([prefiltered(trial, 0.1, rest=True)])
+    # the dataset pairs sample k+1's readings; its first sample's pair is absent, so the
+    # filters start one sample apart and agree once that start has decayed (exp(-21))
+    late = slice(600, None)
+    torch.testing.assert_close(out.measurements[:, late], want.measurements[:, late],
+                               atol=1e-6, rtol=0)  # fmt: skip
+    torch.testing.assert_close(out.inputs[:, late], want.inputs[:, late], atol=1e-5, rtol=0)
+    torch.testing.assert_close(ds.inputs[0, -1] - out.inputs[0, -1],
+                               torch.tensor([0.004, -0.002, 0.003]).to(ds.inputs))
+    assert torch.equal(out.measurements[..., 3:], ds.measurements[..., 3:])
+
+
+def test_the_online_prefilter_gives_the_batch_results_sample_by_sample(trial):
+    import dataclasses
+
+    from manifold_nets_examples.broad.prefilter import prefiltered
+
+    gyr, acc = trial.gyr.copy(), trial.acc.copy()
+    gyr[:800], acc[:800] = [0.004, -0.002, 0.003], [0.0, 0.0, 9.81]  # a rest, then the excerpt
+    trial = dataclasses.replace(trial, gyr=gyr, acc=acc)
+    for tau, rest in ((0.0, True), (0.5, False), (0.5, True)):
+        want = prefiltered(trial, tau, rest)
+        f = OnlinePrefilter(trial.rate, tau, rest)
+        got = [f.update(g, a) for g, a in zip(trial.gyr, trial.acc)]
+        np.testing.assert_allclose(np.array([g for g, _ in got]), want.gyr, atol=1e-12)
+        np.testing.assert_allclose(np.array([a for _, a in got]), want.acc, atol=1e-9)
+
+
+def _turn_about_up(q: np.ndarray, angle: np.ndarray) -> np.ndarray:
+    qz = np.stack((np.cos(angle / 2), 0 * angle, 0 * angle, np.sin(angle / 2)), 1)
+    return quat_multiply(qz, q)
+
+
+def test_the_cascade_keeps_the_6d_inclination_and_takes_the_9d_heading(trial):
+    q_ref = trial.quat[trial.known][:500]
+    rng = np.random.default_rng(0)
+    tilt_err = G.exp(torch.from_numpy(rng.normal(0, 0.02, (500, 3)))).numpy()
+    q6 = _turn_about_up(quat_multiply(matrix_to_quat(tilt_err), q_ref), rng.uniform(-3, 3, 500))
+    q9 = _turn_about_up(q_ref, rng.normal(0, 0.05, 500))  # right tilt, small heading error
+    q = six_d.cascade(q6, q9)
+    np.testing.assert_allclose(np.linalg.norm(q, axis=1), 1, atol=1e-12)
+    e, e6, e9 = (errors(x, q_ref) for x in (q, q6, q9))
+    np.testing.assert_allclose(e["inclination"], e6["inclination"], atol=1e-7)
+    assert np.abs(e["heading"]).max() < np.abs(e9["heading"]).max() + 0.05
+    assert np.abs(e6["heading"]).max() > 1.0  # the 6-D heading was arbitrary
+    np.testing.assert_allclose(np.abs(six_d.cascade(q9, q9)), np.abs(q9), atol=1e-12)
+
+
+def test_the_6d_reference_rows_track_the_excerpt(trial):
+    pytest.importorskip("vqf")
+    from manifold_nets_examples.broad.reference import riann_6d, vqf_6d
+
+    q = vqf_6d([trial])[0]
+    assert q.shape == (len(trial), 4)
+    assert rmse(q, trial.quat, trial.movement)["inclination"] < 3.0
+    pytest.importorskip("riann")
+    q = riann_6d([trial])[0]
+    assert q.shape == (len(trial), 4) and np.isfinite(q).all()
+    assert rmse(q, trial.quat, trial.movement)["inclination"] < 5.0
+
+
+@pytest.fixture(scope="module")
+def six_d_runs(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("broad6")
+    data = tmp / "mat"
+    data.mkdir()
+    for name in ("tr", "va", "te"):
+        shutil.copyfile(FIXTURE, data / f"{name}.mat")
+    split = tmp / "trials.yaml"
+    split.write_text(yaml.safe_dump({"data_dir": str(data),
+                                     "splits": {"train": ["tr"], "val": ["va"], "test": ["te"]}}))
+    common = ["--split", str(split), "--hidden-size", "8", "--num-layers", "1", "--decimation",
+              "4", "--pretrain-sequences", "4", "--pretrain-length", "16", "--pretrain-epochs",
+              "1", "--window", "32", "--stride", "64", "--finetune-epochs", "1", "--batch-size",
+              "4", "--mounting", "0"]  # fmt: skip
+    train_cmd.main([*common, "--out", str(tmp / "r6"), "--magnetometer", "0",
+                    "--acc-lowpass", "0.5", "--rest-bias", "1"])  # fmt: skip
+    train_cmd.main([*common, "--out", str(tmp / "r9")])
+    return tmp, split
+
+
+def test_a_6d_run_records_what_it_reads_and_is_scored_on_whole_trials(six_d_runs):
+    tmp, _ = six_d_runs
+    from manifold_nets import load_observer
+
+    # the run's system config says how its observer reads, so its files alone suffice
+    assert input_settings(load_observer(tmp / "r6")[1]) == {
+        "magnetometer": False, "acc_lowpass": 0.5, "rest_bias": True}
+    assert input_settings(load_observer(tmp / "r9")[1]) == {
+        "magnetometer": True, "acc_lowpass": 0.0, "rest_bias": False}
+    assert yaml.safe_load((tmp / "r6" / "config.yaml").read_text())["system"]["rest_bias"]
+    # a system config without the keys (an older run, the first zoo entry) reads the raw 9-D
+    assert input_settings(object()) == {"magnetometer": True, "acc_lowpass": 0.0,
+                                        "rest_bias": False}
+    res = json.loads((tmp / "r6" / "results" / "learned_test.json").read_text())
+    assert math.isfinite(res["mean"]["inclination"])
+
+
+def test_the_six_d_command_writes_the_rows_and_the_cascade(six_d_runs):
+    pytest.importorskip("vqf")
+    tmp, split = six_d_runs
+    out = tmp / "table"
+    r6, r9 = str(tmp / "r6"), str(tmp / "r9")
+    six_d.main(["--split", "test", "--config", str(split), "--out", str(out),
+                "--learned", f"six={r6},{r6}", "--cascade", f"both={r6}+{r9}"])  # fmt: skip
+    metrics = json.loads((out / "metrics.json").read_text())
+    rows = metrics["inclination"]
+    assert {"vqf_6d", "vqf_9d", "six"} <= set(rows)
+    assert rows["six"]["std_over_runs"] == 0.0  # the same run twice
+    assert math.isclose(rows["six"]["mean"], rows[f"six [{r6}]"]["mean"])
+    both = {r["trial"]: r for r in metrics["cascades"] if r["method"] == "both"}
+    assert math.isclose(both["te"]["inclination"], rows["six"]["te"], rel_tol=1e-9)
+    assert "### 6-D" in (out / "table.md").read_text()
+    with pytest.raises(SystemExit, match="LABEL=RUN6"):
+        six_d.main(["--out", str(out), "--cascade", f"x={r6}"])
+
+
+def test_the_seed_ensemble_is_the_mean_rotation_whatever_the_signs():
+    from manifold_nets_examples.broad.seeds import ensemble
+
+    rng = np.random.default_rng(2)
+    mid = matrix_to_quat(G.random((50,), generator=torch.Generator().manual_seed(3),
+                                  dtype=torch.float64).numpy())  # fmt: skip
+    turn = matrix_to_quat(G.exp(torch.from_numpy(rng.normal(0, 0.05, (50, 3)))).numpy())
+    back = turn * np.array([1, -1, -1, -1])  # the inverse turn
+    a, b = quat_multiply(turn, mid), -quat_multiply(back, mid)  # b with the other sign
+    got = ensemble([a, b])
+    assert np.abs(errors(got, mid)["total"]).max() < 1e-12
+    np.testing.assert_allclose(ensemble([a, -a]), a, atol=1e-15)
+
+
+def test_the_seeds_command_gives_mean_spread_and_ensemble(six_d_runs):
+    pytest.importorskip("vqf")
+    from manifold_nets_examples.broad import seeds
+
+    tmp, split = six_d_runs
+    r9, r6 = str(tmp / "r9"), str(tmp / "r6")
+    out = tmp / "seeds"
+    seeds.main(["--split", "test", "--config", str(split), "--out", str(out),
+                "--runs", f"a={r9},{r9}", "--runs", f"b={r6}", "--ensemble"])  # fmt: skip
+    rows = json.loads((out / "metrics.json").read_text())
+    assert set(rows) == {"vqf", "a", "a (ensemble of 2)", "b"}
+    assert rows["a"]["std"]["total"] == 0.0 and rows["b"]["std"]["total"] is None
+    assert math.isclose(rows["a (ensemble of 2)"]["mean"]["total"], rows["a"]["mean"]["total"],
+                        rel_tol=1e-9)  # fmt: skip
+    stored = json.loads((tmp / "r9" / "results" / "learned_test.json").read_text())
+    assert math.isclose(rows["a"]["mean"]["inclination"], stored["mean"]["inclination"],
+                        rel_tol=1e-9)  # fmt: skip
+    with pytest.raises(SystemExit, match="no such run"):
+        seeds.main(["--out", str(out), "--runs", f"c={tmp / 'nowhere'}"])
