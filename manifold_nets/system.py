@@ -122,6 +122,11 @@ class System(abc.ABC):
     dt: float
     #: Short name, used in file names and metadata.
     name: str
+    #: What a recording's readings go through before this system's observer reads them, when
+    #: more than the data file holds (a pre-filter the observer was trained behind), and the
+    #: command that does it; ``None``: the readings as they are. Commands that feed a data
+    #: file's readings unchanged (``mn-apply``) refuse an observer whose system names one.
+    preprocessing: str | None = None
 
     # ------------------------------------------------------------------ what a subclass writes
 

@@ -152,3 +152,25 @@ def test_a_config_asking_for_a_huge_or_other_model_is_refused_before_building(
     (folder / "config.yaml").write_text(yaml.safe_dump(cfg))
     with pytest.raises(ArtefactError, match=match):
         load_observer(folder)
+
+
+def test_an_observer_trained_behind_a_prefilter_is_refused_unless_the_file_is_preprocessed(
+    tmp_path,
+):
+    # zoo:broad/attitude reads the gyroscope less its bias at rest and a low-passed
+    # accelerometer: raw readings would give another (worse) filter without a word
+    from manifold_nets_examples.broad.simulator import BroadSimulator
+
+    assert BroadSimulator().preprocessing is None  # the raw 9-D readings
+    ds = BroadSimulator(rest_bias=True, acc_lowpass=1.0).simulate(
+        2, 16, 0.0, torch.Generator().manual_seed(0)
+    )
+    save_dataset(ds, tmp_path / "imu.npz")
+    args = ["zoo:broad/attitude", str(tmp_path / "imu.npz"), "--out", str(tmp_path / "q.npz"),
+            "--no-progress"]
+    with pytest.raises(ValueError, match="gyroscope less its bias estimated at rest.*"
+                       "--preprocessed"):
+        apply.run(args)
+    assert not (tmp_path / "q.npz").exists()
+    est = np.load(apply.run([*args, "--preprocessed"]))["estimates"]
+    assert est.shape == (2, 17, 3, 3) and np.isfinite(est).all()

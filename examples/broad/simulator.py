@@ -217,6 +217,16 @@ class BroadSimulator(System):
                 raise ValueError(f"{_OWNER}: {name} must be true or false, got {flag!r}.")
         self.magnetometer, self.rest_bias = magnetometer, rest_bias
         self.acc_lowpass = _number("acc_lowpass (s)", acc_lowpass)
+        steps = [what for what, on in (
+            ("the magnetometer zeroed", not magnetometer),
+            ("the gyroscope less its bias estimated at rest", rest_bias),
+            (f"the accelerometer low-passed over {self.acc_lowpass:g} s in a gyro-strapdown "
+             "frame", self.acc_lowpass > 0),
+        ) if on]
+        self.preprocessing = None if not steps else (
+            "; ".join(steps) + " (examples/broad/prefilter.py: OnlinePrefilter, or python -m "
+            "manifold_nets_examples.broad.apply on a recording)"
+        )
 
     def _init_motion(self, level_fraction, tilt_max_deg, omega_rms, omega_freq, num_terms,
                      max_rate, rest_probability, rest_duration, rest_ramp) -> None:

@@ -16,7 +16,9 @@ string (the observer's signature, the checkpoint, the data file). Read it back w
 The sequences are run ``--batch-size`` at a time and each batch ``--chunk`` steps at a time
 (the observer's state carried over), with a progress bar on a terminal, on one torch thread
 unless ``--threads`` (or ``OMP_NUM_THREADS``) asks for more (:mod:`manifold_nets.threads`).
-``--out`` is checked before any work (:func:`manifold_nets.destination.check_destination`);
+An observer whose system names a ``preprocessing`` of the readings (a pre-filter it was trained
+behind, e.g. ``zoo:broad/attitude``) is refused unless ``--preprocessed`` says the file's
+readings went through it. ``--out`` is checked before any work (:func:`manifold_nets.destination.check_destination`);
 non-finite estimates are an error and nothing is written. ``mn-apply`` ends an error with
 ``error: ...`` and exit status 1, not a traceback.
 
@@ -84,6 +86,9 @@ def run(argv: Sequence[str] | None = None) -> Path:
     p.add_argument("--threads", type=int, default=None,
                    help="torch threads (default: one, or OMP_NUM_THREADS)")
     p.add_argument("--no-progress", action="store_true")
+    p.add_argument("--preprocessed", action="store_true",
+                   help="the data file's readings went through what the observer's system "
+                   "names as its preprocessing already")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if a.batch_size < 1 or a.chunk < 1:
@@ -96,6 +101,13 @@ def run(argv: Sequence[str] | None = None) -> Path:
         p.error(str(err))
     use_threads(a.threads)
     observer, system, _ = load_observer(a.model)
+    pre = getattr(system, "preprocessing", None)
+    if pre and not a.preprocessed:
+        raise ValueError(
+            f"{a.model}'s observer was trained on readings preprocessed as: {pre}. mn-apply feeds "
+            f"{a.data}'s readings as they are; preprocess them so (then pass --preprocessed), or "
+            "use the command named."
+        )
     data = load_dataset(a.data, group=system.group)
     log.info("%s: %d sequences of %d steps", a.data, len(data), data.length)
     est = apply_observer(
