@@ -214,6 +214,9 @@ class TrainSettings:
     #: Compile the observer's step with ``torch.compile`` for training (fused kernels, faster
     #: epochs after a one-off compilation; needs a C++ compiler).
     compile: bool = False
+    #: On a CUDA device: capture each batch shape's whole training step as a CUDA graph and
+    #: replay it (:mod:`manifold_nets.graphed_step`; not with ``tbptt``).
+    cuda_graph: bool = False
     #: Continue from a checkpoint: a ``last.pt`` file or the run folder that holds one.
     resume: Optional[str] = None
     #: Start from a trained model's weights (a checkpoint, a run folder: its ``best.pt``,

@@ -32,6 +32,7 @@ from .checkpoint import (
 )
 from .config import TrainSettings
 from .data import TrajectoryDataset
+from .graphed_step import GraphedStep, check_graphable
 from .observer import ResidualObserver
 from .streaming import DataStream
 from .training_losses import (
@@ -177,6 +178,8 @@ def fit(
     paper's). Steps whose true state is unknown (``data.mask``) are left out of the loss.
     """
     check_settings(settings)
+    if settings.cuda_graph:
+        check_graphable(model.device, settings.tbptt, start)
     stream = _stream(train_data, settings)
     trainer = _Trainer(model, settings, Path(out_dir), seed, config or {})
     trainer.on_epoch = on_epoch
@@ -240,8 +243,9 @@ class _Trainer:
         self.gen = torch.Generator().manual_seed(int(seed))
         self.opt = torch.optim.AdamW(
             param_groups(model, settings.lr, settings.param_lr),
-            lr=settings.lr, weight_decay=settings.weight_decay,
+            lr=settings.lr, weight_decay=settings.weight_decay, capturable=settings.cuda_graph,
         )
+        self.graphed = GraphedStep(model, self.opt, settings, self.optimise)
         self.history: list[dict] = []
         self.best = {"epoch": 0, "val_loss": math.inf}
         self.on_epoch: EpochCallback | None = None
@@ -408,7 +412,9 @@ class _Trainer:
                 batch = self.augment(batch, self.gen)
             if transform is not None:
                 batch.measurements = transform(batch.measurements, self.gen)
-            if s.tbptt is None:
+            if s.cuda_graph:
+                value = self.graphed(batch)
+            elif s.tbptt is None:
                 value = self.optimise(
                     batch_loss(model, batch, self.start_fn, s.loss, s.skip_steps)
                 )

@@ -137,6 +137,31 @@ def test_resume_on_the_device_gives_the_uninterrupted_weights(tmp_path, device, 
     assert worst <= _bound(device, 1e-6), worst
 
 
+@pytest.mark.parametrize("schedule", ["constant", "cosine"])
+def test_the_captured_training_step_follows_the_eager_one(tmp_path, device, schedule,
+                                                          monkeypatch, record_property):
+    """train.cuda_graph: the same training as the eager step (capturable AdamW, float32
+    rounding), the graph replayed for every full batch, the partial last batch eager."""
+    if device.type != "cuda":
+        with pytest.raises(ValueError, match="train.cuda_graph=true needs the model on a CUDA"):
+            _fit(device, tmp_path / "refused", cuda_graph=True)
+        assert not (tmp_path / "refused").exists()
+        return
+    replays = []
+    real = torch.cuda.CUDAGraph.replay
+    monkeypatch.setattr(torch.cuda.CUDAGraph, "replay", lambda g: (replays.append(1), real(g)))
+    settings = {"epochs": 3, "batch_size": 6, "schedule": schedule}  # 32 = 5 x 6 + 2
+    _, eager = _fit(device, tmp_path / "eager", **settings)
+    _, graphed = _fit(device, tmp_path / "graph", cuda_graph=True, **settings)
+    worst = max(abs(a["val_loss"] - b["val_loss"]) / a["val_loss"]
+                for a, b in zip(eager.history, graphed.history))
+    record_property(f"cuda_graph_val_loss_relative_deviation[{schedule}]", worst)
+    assert worst <= 1e-4, (eager.history, graphed.history)
+    # 5 full batches an epoch: 3 eager warm-up steps, then the graph (captured once for the
+    # constant rate, once an epoch for the cosine schedule, 3 warm-up steps each time)
+    assert len(replays) == (2 + 5 + 5 if schedule == "constant" else 2 + 2 + 2), len(replays)
+
+
 def test_the_train_command_on_the_device(tmp_path, device):
     """The whole command (data, training, checkpoints, table, figure) with train.device set."""
     name = "cpu" if device.type == "cpu" else str(device)

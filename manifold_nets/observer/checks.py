@@ -55,8 +55,10 @@ def check_sequences(obs, measurements, inputs) -> tuple[torch.Tensor, torch.Tens
     dev = obs.device
     ys = torch.cat([p.to(device=dev, dtype=obs.state_dtype) for p in parts], dim=-1)
     yu = torch.cat([p.to(device=dev, dtype=obs.net_dtype) for p in parts], dim=-1)
-    # a data-dependent branch: checked in eager use, left out of a traced graph
-    if not torch.compiler.is_compiling() and not bool(torch.isfinite(yu).all()):
+    # a data-dependent branch: checked in eager use, left out of a traced or captured graph
+    # (the captured training step, manifold_nets.graphed_step, checks its batches eagerly first)
+    capturing = yu.is_cuda and torch.cuda.is_current_stream_capturing()
+    if not torch.compiler.is_compiling() and not capturing and not bool(torch.isfinite(yu).all()):
         raise ValueError(
             "measurements/inputs hold NaN or Inf (or values beyond the network dtype's range); "
             "the observer needs finite data."
