@@ -109,3 +109,21 @@ def so3_walk(n: int, t: int, seed: int) -> TrajectoryDataset:
     noise = torch.randn(n, t, 9, generator=g, dtype=torch.float64)
     meas = states[:, 1:].flatten(-2) + sigma * noise
     return TrajectoryDataset(states, meas, torch.zeros(n, t, 0, dtype=torch.float64), {})
+
+
+def rigid_readings(n: int = 5, t: int = 7, seed: int = 1):
+    """``(y, x)``: ``n`` sequences of ``t`` random rigid-body readings (a rotation's 9 entries
+    and 9 numbers, float64) and ``t + 1`` random states of :func:`rigid_short`."""
+    from groups import SO3
+
+    g = torch.Generator().manual_seed(seed)
+    y = torch.cat([SO3().random((n, t), generator=g, dtype=torch.float64).flatten(-2),
+                   torch.randn(n, t, 9, generator=g, dtype=torch.float64)], -1)
+    return y, rigid_short().random((n, t + 1), generator=g, dtype=torch.float64)
+
+
+def rigid_short():
+    """``SO(3) x R^3 x R^3 x R^3`` named ``R, p, bw, bv``."""
+    from groups import SO3, Euclidean, Product
+
+    return Product(SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "bw", "bv"))

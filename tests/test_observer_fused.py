@@ -7,15 +7,16 @@ from __future__ import annotations
 import pytest
 import torch
 
-from groups import SE3, SO3, Euclidean, Product
+from groups import SE3, Euclidean, Product
 from groups import so3_kernels
 from manifold_nets.losses import embedding_mse
 from manifold_nets.observer import GroupUpdate, Measurement, ResidualObserver
 from manifold_nets.observer import measurement as measurement_module
 from manifold_nets.observer import update as update_module
+from tests.observer_checks import rigid_readings, rigid_short
 from manifold_nets.observer.features import Embedding, Innovation, Readings
 
-RIGID = Product(SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "bw", "bv"))
+RIGID = rigid_short()
 
 
 def _observer(net_dtype=torch.float32, rules=None, seed=0):
@@ -29,11 +30,7 @@ def _observer(net_dtype=torch.float32, rules=None, seed=0):
     return obs
 
 
-def _data(n=5, t=7, seed=1):
-    g = torch.Generator().manual_seed(seed)
-    y = torch.cat([SO3().random((n, t), generator=g, dtype=torch.float64).flatten(-2),
-                   torch.randn(n, t, 9, generator=g, dtype=torch.float64)], -1)
-    return y, RIGID.random((n, t + 1), generator=g, dtype=torch.float64)
+_data = rigid_readings
 
 
 def _grads(obs, y, x, fused, create_graph=False):

@@ -12,18 +12,19 @@ import math
 import pytest
 import torch
 
-from groups import SO3, Euclidean, Product
+from groups import SO3
 from groups import numerics as nx
 from groups import so3_kernels as K
 from manifold_nets.cores import GRUCore
 from manifold_nets.losses import embedding_mse
 from manifold_nets.observer import GroupUpdate, Measurement, ResidualObserver
+from tests.observer_checks import rigid_readings, rigid_short
 from manifold_nets.observer.features import Embedding, Innovation, Readings, reads_as_one
 from manifold_nets.observer.fused import gradient_layout
 from manifold_nets.observer.heads import GainHead
 from manifold_nets.observer.measurement import DeferredView
 
-RIGID = Product(SO3(), Euclidean(3), Euclidean(3), Euclidean(3), names=("R", "p", "bw", "bv"))
+RIGID = rigid_short()
 ANGLES = (0.0, 1e-8, 1e-5, 3e-3, 5e-3, 1e-2, 0.25, 1.0, 3.0, math.pi - 1e-7, math.pi)
 
 
@@ -44,11 +45,7 @@ def _observer(features=None, head=None, seed=0):
     return obs
 
 
-def _data(n=5, t=7, seed=1):
-    g = torch.Generator().manual_seed(seed)
-    y = torch.cat([SO3().random((n, t), generator=g, dtype=torch.float64).flatten(-2),
-                   torch.randn(n, t, 9, generator=g, dtype=torch.float64)], -1)
-    return y, RIGID.random((n, t + 1), generator=g, dtype=torch.float64)
+_data = rigid_readings
 
 
 @pytest.mark.parametrize("n", [1, 5, 64])
