@@ -32,7 +32,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import random
 import statistics
 import subprocess
@@ -45,6 +44,8 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the helpers beside this file
+from machine import describe as describe_machine  # noqa: E402
 RESULTS = ROOT / "benchmarks" / "results"
 SIGMA, INIT_STEPS = 0.3, 5
 
@@ -343,18 +344,6 @@ def _broad_table(runs: dict) -> list[str]:
     return lines
 
 
-def _machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} logical cores"
-
-
 def _goals(rigid: dict, broad: dict) -> list[str]:
     """The issue's two goals, read off this run: the project's step at most numpy's (median CPU
     ratio), BROAD's 8 test trials in under 60 s (wall)."""
@@ -384,7 +373,7 @@ def _report(args, rigid: dict, broad: dict, ops: dict, loads: tuple[float, float
         f"`python benchmarks/bench_ekf.py {' '.join(given)}` (on commit {commit} plus the "
         f"working tree, {time.strftime('%Y-%m-%d %H:%M')})",
         "",
-        f"{_machine()}; torch {torch.__version__}, numpy {np.__version__}, 1 torch thread; load "
+        f"{describe_machine()}; torch {torch.__version__}, numpy {np.__version__}, 1 torch thread; load "
         f"average {loads[0]:.1f} at the start, {loads[1]:.1f} at the end. A shared machine: other "
         "processes ran throughout, so the times are noisy and the wall times longer than the "
         "CPU times; the ratios are taken within each round (order shuffled) and are what to "

@@ -36,7 +36,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import platform
 import statistics
 import subprocess
 import sys
@@ -47,6 +46,8 @@ from pathlib import Path
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))  # the helpers beside this file
+from machine import describe as describe_machine  # noqa: E402
 
 
 def _observer():
@@ -146,18 +147,6 @@ def _profile(obs, ys: torch.Tensor, top: int = 12) -> str:
     return prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=top)
 
 
-def _machine() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{cpu}, {os.cpu_count()} logical cores, {platform.system()} {platform.release()}"
-
-
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--steps", type=int, default=200, help="steps per round and variant")
@@ -187,7 +176,7 @@ def main(argv=None) -> int:
         "",
         f"`{cmd}` (commit {commit}, {time.strftime('%Y-%m-%d %H:%M')})",
         "",
-        f"{_machine()}; torch {torch.__version__}, 1 thread, OMP_WAIT_POLICY="
+        f"{describe_machine()}; torch {torch.__version__}, 1 thread, OMP_WAIT_POLICY="
         f"{os.environ.get('OMP_WAIT_POLICY', '(unset)')}; load average {load0:.1f} at the start, "
         f"{load1:.1f} at the end (a shared machine: compare the ratios, not the times).",
         "",

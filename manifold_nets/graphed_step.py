@@ -7,10 +7,11 @@ whole step of one batch shape, rollout, loss, backward, gradient clipping and th
 (an optimizer made with ``capturable=True``), with ``torch.cuda.graph`` and replays it for
 every batch of that shape, the batch copied into the graph's static input tensors first.
 
-- A graph is captured after ``WARMUP`` eager steps of its shape (real training steps, on a side
-  stream, as ``torch.cuda.graph`` asks), and again whenever a learning rate changes (the
-  optimizer's rates are constants inside the graph: the cosine schedule captures once an epoch).
-- A batch of another shape (the last, partial one of an epoch) takes the eager step.
+- Each batch shape gets its own graph after ``WARMUP`` eager steps of that shape (real training
+  steps, on a side stream, as ``torch.cuda.graph`` asks): the full batches early in the first
+  epoch, the last, partial batch of an epoch after as many epochs. All are captured again
+  whenever a learning rate changes (the optimizer's rates are constants inside a graph: the
+  cosine schedule captures once an epoch).
 - The loss is read back after each replay, as the eager step reads it; a non-finite loss has
   already been applied to the weights (the eager step skips it), and training stops as it does
   then, with the checkpoints of the last good epoch.

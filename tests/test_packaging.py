@@ -3,7 +3,7 @@
 The repository's ``examples/`` and ``configs/`` folders are installed as ``manifold_nets_examples``
 and ``manifold_nets_configs`` (``package-dir``); ``packages`` is listed by hand, so a new package
 folder or config group left out of it would silently be missing from the wheel. Read from the
-files, nothing is built (the user's view: ``tests/test_own_project.py`` runs the session of
+files, nothing is built (the user's view: ``tests/test_own_project.py`` runs the workflow of
 ``docs/your_own_project.md`` outside the checkout; ``docs/examples/own_project.py`` runs it from a
 freshly built wheel in a new virtual environment).
 """

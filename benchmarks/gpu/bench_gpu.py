@@ -15,8 +15,9 @@ group state behind a float32 network), built by the project's builders. What is 
   ``closed loop`` (eager), ``closed loop, compiled`` (``ResidualObserver.compile_step()``,
   ``train.compile=true``), ``closed loop, CUDA graph`` (the whole step, forward, backward and
   AdamW(capturable=True), captured once and replayed; the rollout is the observer's own
-  ``step_unchecked`` loop, as ``rollout`` runs it after its one input check, which reads a
-  value on the host and so cannot be captured); against ``cuDNN nn.GRU`` (the open-loop
+  ``step_unchecked`` loop, as ``rollout`` runs it after its one input check: the figures of
+  ``benchmarks/results/gpu.md`` were measured so; ``train.cuda_graph`` captures the rollout
+  itself, whose check stands aside while a stream captures); against ``cuDNN nn.GRU`` (the open-loop
   ``torch.nn.GRU`` of the same size over precomputed inputs, the same head, MSE and AdamW) and
   the ``GRUCell loop`` (two ``nn.GRUCell`` called step by step, open loop);
 * **inference** over ``--infer-batch`` x ``--infer-steps`` (1000 x 1000) sequences, estimates
