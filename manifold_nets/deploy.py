@@ -26,6 +26,14 @@ observer with a piece that depends on the step count (a centred head, a step dec
 more state tensor after the hidden ones, ``steps`` ``(B,)`` in the network dtype: the steps
 taken, exact in float32 up to 2^24 steps. ``y`` and ``u`` may be any views (they are made
 contiguous before use).
+
+An observer trained behind a pre-filter of its readings
+(:class:`~manifold_nets.observer.FilteredObserver`, from
+:func:`~manifold_nets.observer.with_readings_filter`) exports the filter with it: the step then
+takes the raw ``y`` and ``u`` (both in the filter's dtype, float64 by default), the filter's
+state tensors after the observer's (named ``filter_*`` in the description, which also holds the
+filter's signature under ``readings_filter`` and every state tensor's dtype under
+``state_dtypes``), and returns them updated after the observer's.
 """
 
 from __future__ import annotations
@@ -47,7 +55,7 @@ from torch import nn
 from .atomic import atomic_open
 
 if TYPE_CHECKING:
-    from .observer import ResidualObserver
+    from .observer import FilteredObserver, ResidualObserver
 
 __all__ = ["OnlineStep", "ExportedStep", "export_observer", "load_exported_step", "export_onnx"]
 
@@ -112,8 +120,10 @@ class OnlineStep(nn.Module):
         return (x, *hidden, *count)
 
 
-def _meta(step: OnlineStep, batch: int | None) -> dict[str, Any]:
+def _meta(step: nn.Module, batch: int | None) -> dict[str, Any]:
     obs = step.observer
+    prefilter = getattr(step, "prefilter", None)
+    initial = step.initial_state(1)
     return {
         "format": "manifold_nets.online_step/1",
         "signature": obs.signature(),
@@ -125,21 +135,42 @@ def _meta(step: OnlineStep, batch: int | None) -> dict[str, Any]:
         "batch": batch,
         "inputs": ["x", *step.state_names(), "y"]
         + (["u"] if obs.input_dim else []),
-        "initial_state": [t[0].tolist() for t in step.initial_state(1)],
+        "initial_state": [t[0].tolist() for t in initial],
+        "state_dtypes": [str(t.dtype).removeprefix("torch.") for t in initial],
+        "readings_filter": None if prefilter is None else prefilter.signature(),
     }
 
 
+def _online_step(observer) -> nn.Module:
+    """The check-free step of ``observer`` that the exporters trace: :class:`OnlineStep` of a
+    :class:`~manifold_nets.observer.ResidualObserver`, the filter's step then it of a
+    :class:`~manifold_nets.observer.FilteredObserver`."""
+    make = getattr(observer, "online_step_module", None)
+    step = make() if callable(make) else None
+    if not all(hasattr(step, name) for name in ("example_inputs", "state_names", "observer")):
+        raise TypeError(
+            f"export a ResidualObserver or a FilteredObserver (an observer behind its readings "
+            f"filter), got {type(observer).__name__}."
+        )
+    return step.eval()
+
+
 def export_observer(
-    observer: ResidualObserver, path: str | os.PathLike, batch: int | None = None
+    observer: ResidualObserver | FilteredObserver, path: str | os.PathLike,
+    batch: int | None = None,
 ) -> torch.export.ExportedProgram:
     """Traces ``observer``'s online step (:class:`OnlineStep`) with ``torch.export`` and writes
     the program to ``path`` (``torch.export.save``, atomically), with the description
     :func:`load_exported_step` reads. Returns the program.
 
+    ``observer`` may be a :class:`~manifold_nets.observer.FilteredObserver`: the exported step
+    then takes the raw readings, with the filter's state tensors after the observer's
+    (:class:`~manifold_nets.observer.filtered.FilteredStep`).
+
     ``batch``: ``None`` (default) exports for any batch size (a dynamic first dimension, traced
     at 2), an integer for that batch size only.
     """
-    step = OnlineStep(observer).eval()
+    step = _online_step(observer)
     args = step.example_inputs(2 if batch is None else batch)
     dynamic = None
     if batch is None:
@@ -157,8 +188,9 @@ class ExportedStep:
     """An exported online step read back: call it as ``step(x, *hidden, y[, u])``.
 
     ``meta`` is the description written beside the graph (the observer's signature, shapes,
-    dtypes, ``batch``: ``None`` for any); :meth:`initial_state` the identity and the zero hidden
-    state.
+    dtypes, ``batch``: ``None`` for any, the input names, ``readings_filter``: the signature of
+    a pre-filter exported with it or ``None``); :meth:`initial_state` the identity, the zero
+    hidden state and a pre-filter's start.
     """
 
     def __init__(self, program: torch.export.ExportedProgram, meta: dict[str, Any]):
@@ -166,12 +198,12 @@ class ExportedStep:
         self.module = program.module()
 
     def initial_state(self, batch: int | None = None) -> tuple[torch.Tensor, ...]:
-        """``(x, *hidden)`` before the first step, the identity and the core's zero state, for
-        ``batch`` (default: the exported batch, or 1 for a program of any batch)."""
+        """``(x, *hidden)`` before the first step, the identity and the core's zero state (and a
+        pre-filter's start), for ``batch`` (default: the exported batch, or 1 for a program of
+        any batch)."""
         batch = batch or self.meta["batch"] or 1
-        dtypes = [self.meta["state_dtype"]] + [self.meta["net_dtype"]] * (
-            len(self.meta["initial_state"]) - 1
-        )
+        dtypes = self.meta.get("state_dtypes") or [self.meta["state_dtype"]] + [
+            self.meta["net_dtype"]] * (len(self.meta["initial_state"]) - 1)  # older files
         return tuple(
             torch.tensor([v] * batch, dtype=getattr(torch, d))
             for v, d in zip(self.meta["initial_state"], dtypes)

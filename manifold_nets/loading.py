@@ -44,7 +44,7 @@ from omegaconf import DictConfig, OmegaConf
 from .builders import build_observer
 from .checkpoint import load_checkpoint, load_state, observer_state, resolve_checkpoint
 from .config import RunConfig
-from .observer import ResidualObserver
+from .observer import ResidualObserver, with_readings_filter
 from .plugins import locate
 from .system import SYSTEMS, System
 
@@ -67,6 +67,13 @@ class LoadedObserver(NamedTuple):
     system: System
     #: The run's resolved config, typed by :class:`~manifold_nets.config.RunConfig`.
     config: DictConfig
+
+    def filtered(self):
+        """The observer behind its system's readings filter (a
+        :class:`~manifold_nets.observer.FilteredObserver`: raw readings in, for rollouts, online
+        steps and :func:`~manifold_nets.export_observer`), or the observer itself when the
+        system has none (:func:`~manifold_nets.observer.with_readings_filter`)."""
+        return with_readings_filter(self.observer, self.system)
 
 
 #: Bounds on a config read from a file: bytes, nesting depth, nodes (mappings, lists, values).

@@ -47,7 +47,7 @@ from __future__ import annotations
 import abc
 import math
 from collections.abc import Callable
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -57,6 +57,9 @@ from .data import TrajectoryDataset, check_positive_int, check_sigma
 from .losses import factor_errors
 from .progress import progress
 from .registry import Registry
+
+if TYPE_CHECKING:
+    from .observer.readings_filter import ReadingsFilter
 
 __all__ = ["SYSTEMS", "System", "check_last_dim", "check_number", "check_simulate_args"]
 
@@ -123,9 +126,10 @@ class System(abc.ABC):
     #: Short name, used in file names and metadata.
     name: str
     #: What a recording's readings go through before this system's observer reads them, when
-    #: more than the data file holds (a pre-filter the observer was trained behind), and the
-    #: command that does it; ``None``: the readings as they are. Commands that feed a data
-    #: file's readings unchanged (``mn-apply``) refuse an observer whose system names one.
+    #: more than the data file holds (a pre-filter the observer was trained behind), in words;
+    #: ``None``: the readings as they are. :meth:`readings_filter` is the filter itself; a
+    #: system that names one here but gives none is refused by the commands that feed a data
+    #: file's readings (``mn-apply``) unless they are told the file went through it.
     preprocessing: str | None = None
 
     # ------------------------------------------------------------------ what a subclass writes
@@ -306,6 +310,14 @@ class System(abc.ABC):
             "input_dim": self.input_dim,
         }
         return TrajectoryDataset(states, measurements, self.inputs(drive), meta)
+
+    def readings_filter(self) -> ReadingsFilter | None:
+        """The causal pre-filter of the readings this system's observer was trained behind, as a
+        :class:`~manifold_nets.observer.readings_filter.ReadingsFilter` built by the system's own
+        code from its config's plain numbers (never from a name in a file), or ``None`` (the
+        default: the readings as they are). ``mn-apply`` and the exported step of
+        :func:`manifold_nets.observer.filtered.with_readings_filter` run it before the observer."""
+        return None
 
     # ------------------------------------------------------------------ evaluation hooks
 

@@ -154,11 +154,11 @@ def test_a_config_asking_for_a_huge_or_other_model_is_refused_before_building(
         load_observer(folder)
 
 
-def test_an_observer_trained_behind_a_prefilter_is_refused_unless_the_file_is_preprocessed(
-    tmp_path,
-):
+def test_an_observer_trained_behind_a_prefilter_reads_raw_readings_through_it(tmp_path):
     # zoo:broad/attitude reads the gyroscope less its bias at rest and a low-passed
-    # accelerometer: raw readings would give another (worse) filter without a word
+    # accelerometer: mn-apply runs its system's filter on the file's readings, or skips it when
+    # --preprocessed says the file went through it (tests/test_broad_prefilter_piece.py has the
+    # equality of the two paths)
     from manifold_nets_examples.broad.simulator import BroadSimulator
 
     assert BroadSimulator().preprocessing is None  # the raw 9-D readings
@@ -166,11 +166,25 @@ def test_an_observer_trained_behind_a_prefilter_is_refused_unless_the_file_is_pr
         2, 16, 0.0, torch.Generator().manual_seed(0)
     )
     save_dataset(ds, tmp_path / "imu.npz")
+    args = ["zoo:broad/attitude", str(tmp_path / "imu.npz"), "--no-progress"]
+    raw = np.load(apply.run([*args, "--out", str(tmp_path / "raw.npz")]))
+    assert "readings_filter" in str(raw["meta"])
+    est = np.load(apply.run([*args, "--out", str(tmp_path / "q.npz"), "--preprocessed"]))
+    assert est["estimates"].shape == raw["estimates"].shape == (2, 17, 3, 3)
+    assert np.isfinite(raw["estimates"]).all()
+    assert not np.allclose(est["estimates"], raw["estimates"])  # the filter did something
+
+
+def test_a_system_that_names_a_preprocessing_without_a_filter_is_refused(tmp_path, monkeypatch):
+    from manifold_nets_examples.broad.simulator import BroadSimulator
+
+    monkeypatch.setattr(BroadSimulator, "readings_filter", lambda self: None)
+    ds = BroadSimulator().simulate(1, 8, 0.0, torch.Generator().manual_seed(0))
+    save_dataset(ds, tmp_path / "imu.npz")
     args = ["zoo:broad/attitude", str(tmp_path / "imu.npz"), "--out", str(tmp_path / "q.npz"),
             "--no-progress"]
     with pytest.raises(ValueError, match="gyroscope less its bias estimated at rest.*"
-                       "--preprocessed"):
+                       "no readings_filter.*--preprocessed"):
         apply.run(args)
     assert not (tmp_path / "q.npz").exists()
-    est = np.load(apply.run([*args, "--preprocessed"]))["estimates"]
-    assert est.shape == (2, 17, 3, 3) and np.isfinite(est).all()
+    assert np.load(apply.run([*args, "--preprocessed"]))["estimates"].shape == (1, 9, 3, 3)

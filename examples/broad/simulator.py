@@ -224,9 +224,20 @@ class BroadSimulator(System):
              "frame", self.acc_lowpass > 0),
         ) if on]
         self.preprocessing = None if not steps else (
-            "; ".join(steps) + " (examples/broad/prefilter.py: OnlinePrefilter, or python -m "
-            "manifold_nets_examples.broad.apply on a recording)"
+            "; ".join(steps) + " (readings_filter(): examples/broad/imu_prefilter.py, which "
+            "mn-apply and the exported step of a FilteredObserver run; OnlinePrefilter in numpy)"
         )
+
+    def readings_filter(self):
+        """The pre-filter of :meth:`_init_readings` as a torch module (:class:`.imu_prefilter.
+        ImuPrefilter`) at the observer's rate ``1 / dt``, built from the config's numbers; ``None``
+        when the observer reads the readings as they are."""
+        if self.preprocessing is None:
+            return None
+        from .imu_prefilter import ImuPrefilter
+
+        return ImuPrefilter(1.0 / self.dt, tau=self.acc_lowpass, rest=self.rest_bias,
+                            magnetometer=self.magnetometer)
 
     def _init_motion(self, level_fraction, tilt_max_deg, omega_rms, omega_freq, num_terms,
                      max_rate, rest_probability, rest_duration, rest_ramp) -> None:

@@ -16,9 +16,12 @@ string (the observer's signature, the checkpoint, the data file). Read it back w
 The sequences are run ``--batch-size`` at a time and each batch ``--chunk`` steps at a time
 (the observer's state carried over), with a progress bar on a terminal, on one torch thread
 unless ``--threads`` (or ``OMP_NUM_THREADS``) asks for more (:mod:`manifold_nets.threads`).
-An observer whose system names a ``preprocessing`` of the readings (a pre-filter it was trained
-behind, e.g. ``zoo:broad/attitude``) is refused unless ``--preprocessed`` says the file's
-readings went through it. ``--out`` is checked before any work (:func:`manifold_nets.destination.check_destination`);
+An observer whose system has a pre-filter of the readings (one it was trained behind,
+:meth:`manifold_nets.System.readings_filter`, e.g. ``zoo:broad/attitude``'s) reads the file's
+readings through it (:class:`manifold_nets.observer.FilteredObserver`; the filter's state carried
+over the chunks like the observer's); ``--preprocessed`` says they went through it already and
+skips it. A system that names a ``preprocessing`` but has no filter to run is refused unless
+``--preprocessed``. ``--out`` is checked before any work (:func:`manifold_nets.destination.check_destination`);
 non-finite estimates are an error and nothing is written. ``mn-apply`` ends an error with
 ``error: ...`` and exit status 1, not a traceback.
 
@@ -42,7 +45,7 @@ from manifold_nets.atomic import atomic_open
 from manifold_nets.data import load_dataset
 from manifold_nets.destination import check_destination
 from manifold_nets.loading import load_observer
-from manifold_nets.observer import ResidualObserver
+from manifold_nets.observer import FilteredObserver, ResidualObserver, with_readings_filter
 from manifold_nets.progress import progress
 from manifold_nets.threads import use_threads
 
@@ -52,7 +55,7 @@ log = logging.getLogger(__name__)
 
 
 def apply_observer(
-    observer: ResidualObserver,
+    observer: ResidualObserver | FilteredObserver,
     measurements: torch.Tensor,
     inputs: torch.Tensor | None = None,
     batch_size: int = 256,
@@ -87,8 +90,8 @@ def run(argv: Sequence[str] | None = None) -> Path:
                    help="torch threads (default: one, or OMP_NUM_THREADS)")
     p.add_argument("--no-progress", action="store_true")
     p.add_argument("--preprocessed", action="store_true",
-                   help="the data file's readings went through what the observer's system "
-                   "names as its preprocessing already")
+                   help="the data file's readings went through the observer's pre-filter "
+                   "(its system's preprocessing) already: do not filter them again")
     a = p.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(message)s")
     if a.batch_size < 1 or a.chunk < 1:
@@ -101,15 +104,14 @@ def run(argv: Sequence[str] | None = None) -> Path:
         p.error(str(err))
     use_threads(a.threads)
     observer, system, _ = load_observer(a.model)
-    pre = getattr(system, "preprocessing", None)
-    if pre and not a.preprocessed:
-        raise ValueError(
-            f"{a.model}'s observer was trained on readings preprocessed as: {pre}. mn-apply feeds "
-            f"{a.data}'s readings as they are; preprocess them so (then pass --preprocessed), or "
-            "use the command named."
-        )
+    observer = _prefiltered(observer, system, a)
     data = load_dataset(a.data, group=system.group)
     log.info("%s: %d sequences of %d steps", a.data, len(data), data.length)
+    dt = data.meta.get("dt") if isinstance(data.meta, dict) else None
+    if isinstance(observer, FilteredObserver) and isinstance(dt, (int, float)) \
+            and abs(dt - system.dt) > 1e-6 * system.dt:  # fmt: skip
+        log.warning("warning: %s has a step of %g s, the observer's system %g s: its pre-filter "
+                    "runs at the system's rate", a.data, dt, system.dt)
     est = apply_observer(
         observer, data.measurements, data.inputs, a.batch_size, a.chunk, not a.no_progress
     )
@@ -129,6 +131,26 @@ def run(argv: Sequence[str] | None = None) -> Path:
         np.savez(f, estimates=est.double().numpy(), meta=np.array(json.dumps(meta)))
     log.info("estimates %s written to %s", tuple(est.shape), out)
     return out
+
+
+def _prefiltered(observer: ResidualObserver, system, a: argparse.Namespace):
+    """``observer`` behind its system's readings filter unless ``--preprocessed``; an error when
+    the system names a preprocessing it gives no filter for (and not ``--preprocessed``)."""
+    if a.preprocessed:
+        return observer
+    filtered = with_readings_filter(observer, system)
+    if filtered is not observer:
+        log.info("readings pre-filtered as %s's system says: %s", a.model,
+                 getattr(system, "preprocessing", None) or filtered.prefilter.name)
+        return filtered
+    pre = getattr(system, "preprocessing", None)
+    if pre:
+        raise ValueError(
+            f"{a.model}'s observer was trained on readings preprocessed as: {pre}, and its "
+            f"system gives no readings_filter() to run; preprocess {a.data}'s readings so (then "
+            "pass --preprocessed), or use the command named."
+        )
+    return observer
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -11,6 +11,8 @@ features                :class:`Embedding`, :class:`Readings`, :class:`Innovatio
 heads                   :class:`PlainHead`, :class:`GainHead`, :class:`CentredHead`
 step scales             :class:`OutputScale`, :class:`StepDecay`
 a covariance            :class:`CovarianceReadout`, :class:`CalibratedObserver`
+a readings pre-filter   :class:`ReadingsFilter`, :class:`FilteredObserver`,
+                        :func:`with_readings_filter`
 your own piece          subclass :class:`Prior`, :class:`Feature`, :class:`Head` or
                         :class:`StepScale` with a ``name``: a config may then name it
 ======================  ====================================================================
@@ -18,11 +20,13 @@ your own piece          subclass :class:`Prior`, :class:`Feature`, :class:`Head`
 
 from .covariance import CalibratedObserver, CovarianceReadout
 from .features import Embedding, Feature, FramedInnovation, Innovation, Readings, Rotated
+from .filtered import FilteredObserver, FilteredState, with_readings_filter
 from .heads import CentredHead, GainHead, Head, PlainHead
 from .measurement import Measurement, RobustMeasurement, StepView
 from .observer import ObserverState, ResidualObserver, Rollout
 from .piece import PIECES, Piece
 from .priors import KinematicPrior, NoPrior, Prior, RobustSystemPrior, SystemPrior
+from .readings_filter import ReadingsFilter
 from .robust import RobustWeights
 from .scales import OutputScale, StepDecay, StepScale
 from .update import UPDATE_RULES, GroupUpdate
@@ -35,4 +39,5 @@ __all__ = [
     "Head", "PlainHead", "GainHead", "CentredHead",
     "StepScale", "OutputScale", "StepDecay", "RobustWeights",
     "CovarianceReadout", "CalibratedObserver",
+    "ReadingsFilter", "FilteredObserver", "FilteredState", "with_readings_filter",
 ]
