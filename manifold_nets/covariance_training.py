@@ -31,22 +31,29 @@ __all__ = ["Sequences", "readout_sequences", "fit_covariance", "mean_nll"]
 
 class Sequences(NamedTuple):
     """What a readout is fitted to, for steps ``1 .. T``: its inputs ``features`` ``(N, T, W)``
-    (float32), the errors ``(N, T, n)`` (float64) and ``known``
-    ``(N, T)``, the steps that count."""
+    (float32), the errors ``(N, T, n)`` (float64), ``known`` ``(N, T)``, the steps that count,
+    and ``start`` ``(N,)`` (int64), the steps each sequence's first one comes after (all 0 for
+    whole sequences; a window cut from one starts later: a readout's clock reads it)."""
 
     features: torch.Tensor
     errors: torch.Tensor
     known: torch.Tensor
+    start: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return len(self.features)
 
+    @property
+    def starts(self) -> torch.Tensor:
+        """``start``, zeros where it was not given."""
+        return torch.zeros(len(self), dtype=torch.int64) if self.start is None else self.start
+
     def select(self, idx: torch.Tensor) -> Sequences:
-        return Sequences(self.features[idx], self.errors[idx], self.known[idx])
+        return Sequences(self.features[idx], self.errors[idx], self.known[idx], self.starts[idx])
 
     @staticmethod
     def cat(parts: list[Sequences]) -> Sequences:
-        return Sequences(*(torch.cat(t) for t in zip(*parts)))
+        return Sequences(*(torch.cat(t) for t in zip(*(p[:3] + (p.starts,) for p in parts))))
 
 
 @torch.no_grad()
@@ -84,7 +91,7 @@ def readout_sequences(
 
 
 def _nll(readout: CovarianceReadout, seqs: Sequences) -> tuple[torch.Tensor, int]:
-    chol, log_diag = readout.log_scale(seqs.features)
+    chol, log_diag = readout.log_scale(seqs.features, seqs.starts)
     nll = gaussian_nll(seqs.errors, chol, log_diag)
     return nll[seqs.known].sum(), int(seqs.known.sum())
 
@@ -175,7 +182,7 @@ def load_readout(path, observer: ResidualObserver):
 
     from .checkpoint import CheckpointError, load_state
     from .observer import CalibratedObserver
-    from .observer.covariance import MAX_MEMORY, SOURCES, STRUCTURES, input_width
+    from .observer.covariance import MAX_MEMORY, SOURCES, STRUCTURES, check_clock, input_width
 
     path = Path(path)
     if not path.is_file():
@@ -193,17 +200,22 @@ def load_readout(path, observer: ResidualObserver):
         raise CheckpointError(f"{path}: the signature or the weights are missing.")
     # what the file may choose, checked; the rest must be what this observer fixes
     source, structure, memory = sig.get("source"), sig.get("structure"), sig.get("memory")
+    try:
+        clock = check_clock(sig.get("clock", ()))
+    except ValueError:
+        clock = None
     choices_ok = (source in SOURCES and structure in STRUCTURES and type(memory) is int
-                  and 0 <= memory <= MAX_MEMORY)
+                  and 0 <= memory <= MAX_MEMORY and clock is not None)
     want = {"type": "cholesky", "group": repr(observer.group), "source": source,
             "structure": structure, "memory": memory,
-            "width": input_width(observer, source) if source in SOURCES else None}
+            "width": input_width(observer, source) if source in SOURCES else None,
+            **({"clock": sig.get("clock")} if clock else {})}
     if not choices_ok or sig != want:
         diff = sorted(k for k in set(sig) | set(want) if sig.get(k) != want.get(k))
         raise CheckpointError(
             f"{path}: the readout does not fit this observer (its signature {sig!r}; "
             f"{', '.join(diff) or 'source, structure or memory'} differ from {want!r})."[:2000]
         )
-    readout = CovarianceReadout(observer.group, want["width"], structure, memory, source)
+    readout = CovarianceReadout(observer.group, want["width"], structure, memory, source, clock)
     load_state(readout, {"model": state}, path)
     return CalibratedObserver(observer, readout)

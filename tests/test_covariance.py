@@ -80,10 +80,12 @@ def _measurements(n, t, seed=5):
     return GROUP.embed(x)
 
 
+@pytest.mark.parametrize("clock", [(), (2.0, 5.0)])
 @pytest.mark.parametrize("source", ["residual", "hidden", "readings"])
-def test_rollout_online_and_exported_steps_give_the_same_estimates_and_covariances(source):
+def test_rollout_online_and_exported_steps_give_the_same_estimates_and_covariances(source, clock):
     obs = _observer()
-    r = CovarianceReadout(GROUP, input_width(obs, source), "factor", memory=4, source=source)
+    r = CovarianceReadout(GROUP, input_width(obs, source), "factor", memory=4, source=source,
+                          clock=clock)
     with torch.no_grad():
         for p in r.parameters():
             p.normal_(0, 0.3)
@@ -173,9 +175,9 @@ def test_a_saved_readout_loads_back_and_a_foreign_one_is_refused(tmp_path):
         load_readout(tmp_path / "w.pt", obs)
 
 
-def test_the_calibrated_step_exports_with_torch_export_and_gives_the_same_covariance():
+def test_the_calibrated_step_exports_with_torch_export_and_gives_the_same_covariance(clock=()):
     obs = _observer()
-    r = CovarianceReadout(GROUP, input_width(obs, "residual"), "factor", memory=4)
+    r = CovarianceReadout(GROUP, input_width(obs, "residual"), "factor", memory=4, clock=clock)
     with torch.no_grad():
         for p in r.parameters():
             p.normal_(0, 0.3)
@@ -214,3 +216,65 @@ def test_exporting_the_calibrated_step_leaves_the_piece_classes_as_they_were():
     patched = [k for k, c in PIECES.items() if "AttrProxy" in c.__init__.__qualname__]
     assert patched == []
     assert "dim" in inspect.signature(Measurement.__init__).parameters
+
+
+def test_the_exported_step_of_a_readout_with_a_clock_counts_its_steps():
+    test_the_calibrated_step_exports_with_torch_export_and_gives_the_same_covariance(clock=(3.0,))
+
+
+def test_a_clock_reads_the_steps_from_the_start_and_changes_the_covariance():
+    """The clock's inputs are exp(-k / tau) at the observer's steps k = start + 1 ..; a readout
+    started later (a window, a resumed state) reads the later steps, and the clock matters."""
+    r = CovarianceReadout(GROUP, 16, "factor", memory=4, clock=(2.0, 7.0))
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.3)
+    c = r.clock_inputs(torch.tensor([0, 3]), 4)
+    k = torch.tensor([[1, 2, 3, 4], [4, 5, 6, 7]], dtype=torch.float64)
+    torch.testing.assert_close(c, torch.exp(-k[..., None] / torch.tensor([2.0, 7.0]).double()).float())
+    z = torch.randn(2, 6, 16)
+    whole, _ = r.log_scale(z)
+    later, _ = r.log_scale(z[:, 3:], torch.tensor([3, 3]))
+    assert not torch.allclose(whole[:, 3:], later)  # another memory, another clock
+    plain = CovarianceReadout(GROUP, 16, "factor", memory=4)
+    assert r.gru.input_size == plain.gru.input_size + 2
+    assert "clock" in r.signature() and "clock" not in plain.signature()
+
+
+@pytest.mark.parametrize("clock", [[0.0], [-1.0], [float("nan")], list(range(1, 10)), "10", [True]])
+def test_a_bad_clock_is_refused_with_the_fix(clock):
+    with pytest.raises(ValueError, match="clock must be a list of at most 8 positive time constants"):
+        CovarianceReadout(GROUP, 16, "factor", memory=4, clock=clock)
+
+
+def test_a_readout_with_a_clock_saves_and_loads(tmp_path):
+    from manifold_nets.checkpoint import CheckpointError
+    from manifold_nets.covariance_training import load_readout, save_readout
+
+    obs = _observer()
+    r = CovarianceReadout(GROUP, input_width(obs, "residual"), "factor", memory=4, clock=(5.0, 50.0))
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.3)
+    save_readout(tmp_path / "c.pt", r, "test")
+    cal = load_readout(tmp_path / "c.pt", obs)
+    assert cal.readout.clock == (5.0, 50.0)
+    y = _measurements(2, 5)
+    with torch.no_grad():
+        torch.testing.assert_close(cal(y)[1], CalibratedObserver(obs, r)(y)[1], rtol=0, atol=0)
+    payload = torch.load(tmp_path / "c.pt", weights_only=True)
+    payload["signature"]["clock"] = [-5.0, 50.0]
+    torch.save(payload, tmp_path / "bad.pt")
+    with pytest.raises(CheckpointError, match="does not fit this observer"):
+        load_readout(tmp_path / "bad.pt", obs)
+
+
+def test_windows_carry_the_steps_they_start_after():
+    from manifold_nets_examples.broad.calibration import _windows
+
+    feats = torch.zeros(2, 7, 1)
+    seqs = Sequences(feats, torch.zeros(2, 7, 3, dtype=torch.float64), torch.ones(2, 7, dtype=torch.bool))
+    out = _windows(seqs, 3)
+    assert out.start.tolist() == [0, 3, 6, 0, 3, 6]
+    assert Sequences.cat([out.select(torch.tensor([1])), out]).starts.tolist() == [3, 0, 3, 6, 0, 3, 6]
+    assert seqs.select(torch.tensor([1])).starts.tolist() == [0]  # whole sequences start at 0

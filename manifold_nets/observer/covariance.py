@@ -105,6 +105,27 @@ def _mask(group: LieGroup, structure: str) -> torch.Tensor:
     return m.tril()
 
 
+#: The most time constants a readout's clock may have.
+MAX_CLOCK = 8
+
+
+def check_clock(clock) -> tuple[float, ...]:
+    """``clock`` as a tuple of time constants in steps (finite, positive; at most
+    :data:`MAX_CLOCK`), or ``ValueError`` naming the problem."""
+    import math
+
+    values = tuple(clock) if isinstance(clock, (list, tuple)) else None
+    if values is None or len(values) > MAX_CLOCK or not all(
+        isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) and t > 0
+        for t in values
+    ):
+        raise ValueError(
+            f"covariance: clock must be a list of at most {MAX_CLOCK} positive time constants in "
+            f"steps (e.g. [10, 50, 250, 1000]), got {clock!r}."
+        )
+    return tuple(float(t) for t in values)
+
+
 def _check_int(name, v, lo, hi):
     if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
         raise ValueError(f"covariance: {name} must be an integer in [{lo}, {hi}], got {v!r}.")
@@ -122,7 +143,7 @@ class CovarianceReadout(nn.Module):
     """
 
     def __init__(self, group: LieGroup, width: int, structure: str = "factor", memory: int = 32,
-                 source: str = "residual"):
+                 source: str = "residual", clock: tuple[float, ...] = ()):
         super().__init__()
         if structure not in STRUCTURES:
             raise ValueError(f"covariance: structure must be one of {STRUCTURES}, got {structure!r}.")
@@ -130,6 +151,7 @@ class CovarianceReadout(nn.Module):
             raise ValueError(f"covariance: source must be one of {SOURCES}, got {source!r}.")
         _check_int("width", width, 1, 16384)
         _check_int("memory", memory, 0, MAX_MEMORY)
+        self.clock = check_clock(clock)
         self.group, self.structure, self.memory, self.source = group, structure, memory, source
         self.width, self.n = width, group.tangent_dim
         rows, cols = torch.nonzero(_mask(group, structure), as_tuple=True)
@@ -138,14 +160,17 @@ class CovarianceReadout(nn.Module):
         self.register_buffer("on_diagonal", rows == cols, persistent=False)
         self.register_buffer("shift", torch.zeros(width))
         self.register_buffer("scale", torch.ones(width))
-        self.gru = nn.GRU(width, memory, batch_first=True) if memory else None
-        self.out = nn.Linear(memory or width, len(rows))
+        reads = width + len(self.clock)
+        self.register_buffer("taus", torch.tensor(self.clock or [1.0]), persistent=False)
+        self.gru = nn.GRU(reads, memory, batch_first=True) if memory else None
+        self.out = nn.Linear(memory or reads, len(rows))
         self.initial = nn.Parameter(torch.zeros(len(rows)))
 
     def signature(self) -> dict:
         return {
             "type": "cholesky", "structure": self.structure, "memory": self.memory,
             "source": self.source, "width": self.width, "group": repr(self.group),
+            **({"clock": list(self.clock)} if self.clock else {}),
         }
 
     def set_input_stats(self, inputs: torch.Tensor) -> None:
@@ -170,10 +195,21 @@ class CovarianceReadout(nn.Module):
         w = self.out.weight
         return torch.zeros(batch, self.memory, dtype=w.dtype, device=w.device if device is None else device)
 
-    def raw(self, inputs: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    def clock_inputs(self, start, steps: int) -> torch.Tensor:
+        """``exp(-k / tau)`` for each time constant of the clock, at the steps ``k = start + 1 ..
+        start + steps``: ``(B or 1, steps, len(clock))`` (``start`` an int or ``(B,)``)."""
+        ks = torch.arange(1, steps + 1, dtype=torch.float64, device=self.taus.device)
+        ks = (start.to(ks).reshape(-1, 1) if isinstance(start, torch.Tensor) else float(start)) + ks
+        return torch.exp(-ks.reshape(-1, steps, 1) / self.taus.double()).to(self.out.weight.dtype)
+
+    def raw(self, inputs: torch.Tensor, memory: torch.Tensor, start=0) -> tuple[torch.Tensor, torch.Tensor]:
         """The readout ``(B, T, count)`` of ``inputs`` ``(B, T, width)`` from ``memory``
-        ``(B, memory)``, and the memory after them."""
+        ``(B, memory)``, and the memory after them; ``start``: the steps taken before the first
+        input (an int or ``(B,)``; read only by a clock)."""
         z = (inputs - self.shift) / self.scale
+        if self.clock:
+            c = self.clock_inputs(start, z.shape[1])
+            z = torch.cat([z, c.expand(z.shape[0], -1, -1)], -1)
         if self.gru is None:
             return self.out(z), memory
         g = self.gru
@@ -190,19 +226,20 @@ class CovarianceReadout(nn.Module):
         C[..., self.rows, self.cols] = unit  # unit lower triangular
         return C * raw[..., self.on_diagonal].exp().unsqueeze(-2)  # C diag(exp(d))
 
-    def cholesky(self, inputs: torch.Tensor, memory: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """``L`` ``(B, T, n, n)`` (float64) of ``inputs`` ``(B, T, width)`` from ``memory``, and
-        the memory after them."""
-        raw, memory = self.raw(inputs, memory)
+    def cholesky(self, inputs: torch.Tensor, memory: torch.Tensor, start=0) -> tuple[torch.Tensor, torch.Tensor]:
+        """``L`` ``(B, T, n, n)`` (float64) of ``inputs`` ``(B, T, width)`` from ``memory`` after
+        ``start`` steps, and the memory after them."""
+        raw, memory = self.raw(inputs, memory, start)
         return self._factor(raw), memory
 
     def initial_cholesky(self, batch: tuple[int, ...] = ()) -> torch.Tensor:
         """The start's ``L`` ``(*batch, n, n)``."""
         return self._factor(self.initial.expand(*batch, -1))
 
-    def log_scale(self, inputs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """For the likelihood, over whole sequences from the initial memory: ``(L, log diag L)``."""
-        raw, _ = self.raw(inputs, self.initial_memory(inputs.shape[0], inputs.device))
+    def log_scale(self, inputs: torch.Tensor, start=0) -> tuple[torch.Tensor, torch.Tensor]:
+        """For the likelihood, over sequences from the initial memory (``start`` steps after the
+        observer's start): ``(L, log diag L)``."""
+        raw, _ = self.raw(inputs, self.initial_memory(inputs.shape[0], inputs.device), start)
         raw = raw.double()
         return self._factor(raw), raw[..., self.on_diagonal]
 
@@ -265,7 +302,8 @@ class CalibratedObserver(nn.Module):
             run.estimates[:, 1:].flatten(2), measurements, inputs,
             tuple(h[:, 1:] for h in run.hidden),
         )
-        chol, _ = self.readout.cholesky(z, self.readout.initial_memory(n, z.device))
+        start = 0 if state is None else state.steps
+        chol, _ = self.readout.cholesky(z, self.readout.initial_memory(n, z.device), start)
         chol = torch.cat([self.readout.initial_cholesky((n, 1)), chol], dim=1)
         return run.estimates, CovarianceReadout.covariance(chol)
 
@@ -278,7 +316,7 @@ class CalibratedObserver(nn.Module):
         """One online step: ``(new state, P (B, n, n))``."""
         obs = self.observer.step(state.observer, y, u)
         z = self.inputs(obs.estimate.flatten(1), y, u, obs.hidden)
-        chol, memory = self.readout.cholesky(z.unsqueeze(1), state.memory)
+        chol, memory = self.readout.cholesky(z.unsqueeze(1), state.memory, state.observer.steps)
         return CalibratedState(obs, memory), CovarianceReadout.covariance(chol[:, 0])
 
     def online_step_module(self) -> nn.Module:
@@ -289,26 +327,31 @@ class CalibratedObserver(nn.Module):
 
 class CalibratedStep(nn.Module):
     """:class:`manifold_nets.deploy.OnlineStep` of the observer, then ``P``:
-    ``(x, *state, memory, y[, u]) -> (x_next, *state_next, memory_next, P)`` (``P``
-    ``(B, n, n)``, float64). Each module sits at one place in it (``step.observer``,
-    ``readout``): ``torch.export``'s non-strict tracer patches a module class reached by two
-    paths, and the patch outlived the export."""
+    ``(x, *state, memory[, clock_steps], y[, u]) -> (x_next, *state_next, memory_next
+    [, clock_steps_next], P)`` (``P`` ``(B, n, n)``, float64; ``clock_steps`` ``(B,)`` float64,
+    the steps taken, only for a readout with a clock). Each module sits at one place in it
+    (``step.observer``, ``readout``): ``torch.export``'s non-strict tracer patches a module class
+    reached by two paths, and the patch outlived the export."""
 
     def __init__(self, calibrated: CalibratedObserver):
         super().__init__()
         self.step = calibrated.observer.online_step_module()
         self.readout = calibrated.readout
         self.layers = len(calibrated.observer.core.initial_hidden(1))
+        self.clock = bool(self.readout.clock)
 
     def initial_state(self, batch: int = 1):
-        return (*self.step.initial_state(batch), self.readout.initial_memory(batch))
+        steps = (torch.zeros(batch, dtype=torch.float64),) if self.clock else ()
+        return (*self.step.initial_state(batch), self.readout.initial_memory(batch), *steps)
 
     def forward(self, x: torch.Tensor, *args: torch.Tensor):
         k = self.step.num_hidden  # the observer's state tensors after x, then the memory
-        state, memory, rest = args[:k], args[k], args[k + 1 :]
+        state, memory = args[:k], args[k]
+        steps, rest = (args[k + 1], args[k + 2 :]) if self.clock else (None, args[k + 1 :])
         out = self.step(x, *state, *rest)
         u = rest[1] if len(rest) > 1 else None
         z = readout_inputs(self.step.observer, self.readout.source, out[0], rest[0], u,
                            out[1 : 1 + self.layers])
-        chol, memory = self.readout.cholesky(z.unsqueeze(1), memory)
-        return (*out, memory, CovarianceReadout.covariance(chol[:, 0]))
+        chol, memory = self.readout.cholesky(z.unsqueeze(1), memory, 0 if steps is None else steps)
+        count = () if steps is None else (steps + 1,)
+        return (*out, memory, *count, CovarianceReadout.covariance(chol[:, 0]))
