@@ -44,17 +44,24 @@ from manifold_nets.threads import use_threads
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
 from .data import read_trials, split_trials
-from .evaluate import decimation, pad_trials
-from .learning import measured_start
+from .evaluate import decimation, input_settings, pad_trials
+from .learning import measured_start, tilt_start, without_magnetometer
+from .prefilter import prefiltered
 from .rate import decimate
 
 __all__ = ["main"]
 
 
 def _decimated(trials, system, moving: bool = False):
-    batch, _ = pad_trials(trials)
+    """The trials as the observer of ``system`` reads them (pre-filtered, without the
+    magnetometer where it was trained so: :func:`.evaluate.input_settings`), decimated to its
+    steps."""
+    reads = input_settings(system)
+    batch, _ = pad_trials([prefiltered(t, reads["acc_lowpass"], reads["rest_bias"]) for t in trials])
     k = decimation(system, trials[0].rate)
     data = decimate(batch, k, 1.0 / trials[0].rate)
+    if not reads["magnetometer"]:
+        data = without_magnetometer(data)
     if moving:  # the benchmark's samples: reference known and the IMU moving
         length = data.length
         move = [np.r_[t.movement, np.zeros(max(0, length * k + 1 - len(t.movement)))][: length * k + 1 : k]
@@ -64,13 +71,16 @@ def _decimated(trials, system, moving: bool = False):
 
 
 def _windows(seqs: Sequences, window: int) -> Sequences:
-    """Sequences cut into windows of ``window`` steps (the last padded with unknown steps)."""
+    """Sequences cut into windows of ``window`` steps (the last padded with unknown steps), each
+    with the steps it starts after (a readout's clock reads them)."""
     n, t = seqs.known.shape
     pad = (-t) % window
     def cut(x, fill):
         x = torch.cat([x, x.new_full((n, pad, *x.shape[2:]), fill)], 1) if pad else x
         return x.reshape(n * ((t + pad) // window), window, *x.shape[2:])
-    out = Sequences(cut(seqs.features, 0.0), cut(seqs.errors, 0.0), cut(seqs.known, False))
+    windows = (t + pad) // window
+    start = (seqs.starts.reshape(n, 1) + window * torch.arange(windows)).reshape(-1)
+    out = Sequences(cut(seqs.features, 0.0), cut(seqs.errors, 0.0), cut(seqs.known, False), start)
     keep = out.known.any(1)
     return out.select(keep.nonzero().squeeze(-1))
 
@@ -93,7 +103,7 @@ def main(argv=None) -> None:
     data_dir, split = split_trials(None)
     data_dir = args.data_dir or data_dir
     observer, system, _ = load_observer(args.observer)
-    start = measured_start(system)
+    start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
     data = {
         "train": _decimated(read_trials(data_dir, split["train"]), system),
         "val": _decimated(read_trials(data_dir, split["val"]), system),
