@@ -38,7 +38,8 @@ from . import numerics as nx
 
 __all__ = [
     "exp", "log", "rplus", "rminus", "rplus_values", "rplus_grads", "rminus_values",
-    "rminus_grads", "records", "recorded_grad", "Inputs", "constant",
+    "rminus_grads", "rplus_parts", "rminus_parts", "exp_coefficients", "log_coefficients",
+    "records", "recorded_grad", "Inputs", "constant",
 ]
 
 # R = I + terms^T @ _EXP_TABLE: each entry of R is a sum of at most two nonzero terms, so the
@@ -207,10 +208,10 @@ def _rodrigues(t2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
 
 
 def _exp_rows(v: torch.Tensor, derivative: bool = False):
-    """``exp(v)`` ``(*batch, 3, 3)`` for ``v`` ``(*batch, 3)`` and (``derivative``) what its
-    derivative reads, ``(over, coef)``: where the angle overflowed ``(N, 1)`` and
-    ``coef = (b, c, (1 - b) / t2)`` ``(N, 3)``,
-    ``b = sin(t) / t``, ``c = (1 - cos t) / t^2``; else ``None``.
+    """``exp(v)`` ``(*batch, 3, 3)`` for ``v`` ``(*batch, 3)`` and (``derivative``) what the
+    coefficients of its derivative are made from, ``(t2, b, c, over)`` ``(N,)`` each
+    (:func:`exp_coefficients`), ``b = sin(t) / t``, ``c = (1 - cos t) / t^2``, ``over`` where
+    the angle overflowed; else ``None``.
 
     A finite angle whose square overflows (``|v| >= sqrt(finfo.max)``) is taken as a whole number
     of turns: its rotation is the identity (``SO3.exp``).
@@ -230,12 +231,17 @@ def _exp_rows(v: torch.Tensor, derivative: bool = False):
     terms = terms.masked_fill_(over, 0.0)
     r = torch.addmm(tab["eye9"], terms.t(), tab["exp_table"])
     r = r.reshape(*v.shape[:-1], 3, 3)
-    if not derivative:
-        return r, None
+    return r, ((t2, b, c, over) if derivative else None)
+
+
+def exp_coefficients(t2, b, c, over):
+    """What :func:`_exp_grad` reads, ``(over (..., 1), coef = (b, c, (1 - b) / t2) (..., 3))``,
+    from :func:`_exp_rows`' ``(t2, b, c, over)`` of any one shape (elementwise: one call for
+    many steps' gives each step's values)."""
     # (1 - b) / t2 = (t - sin t) / t^3 loses digits to cancellation at small t, but it multiplies
     # (v . a) v, of size t^2 |a|: the product keeps an absolute error of a few eps |a|
     d = (1.0 - b) / torch.clamp_min(t2, torch.finfo(t2.dtype).tiny)
-    return r, (over.unsqueeze(-1), torch.stack((b, c, d), dim=1))
+    return over.unsqueeze(-1), torch.stack((b, c, d), dim=-1)
 
 
 def _exp_grad(v, r, over, coef, g):
@@ -254,7 +260,8 @@ def _exp_grad(v, r, over, coef, g):
 class _Exp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, v):
-        r, (over, coef) = _exp_rows(v, derivative=True)
+        r, raw = _exp_rows(v, derivative=True)
+        over, coef = exp_coefficients(*raw)
         ctx.inputs = Inputs(v)
         ctx.save_for_backward(v, r, over, coef)
         return r
@@ -277,11 +284,16 @@ def _rplus_formula(x, v):
     return torch.matmul(x, _exp_rows(v)[0])
 
 
+def rplus_parts(x: torch.Tensor, v: torch.Tensor) -> tuple:
+    """``(x exp(v), exp(v), raw)``, ``raw`` what :func:`exp_coefficients` reads (no graph)."""
+    e, raw = _exp_rows(v, derivative=True)
+    return _matmul(x, e), e, raw
+
+
 def rplus_values(x: torch.Tensor, v: torch.Tensor) -> tuple[torch.Tensor, tuple]:
     """``(x exp(v), saved)``: the value and what :func:`rplus_grads` reads (no graph)."""
-    e, (over, coef) = _exp_rows(v, derivative=True)
-    out = _matmul(x, e)
-    return out, (out, e, over, coef)
+    out, e, raw = rplus_parts(x, v)
+    return out, (out, e, *exp_coefficients(*raw))
 
 
 def rplus_grads(v: torch.Tensor, saved: tuple, grad: torch.Tensor, needs=(True, True)):
@@ -325,6 +337,13 @@ def _log_parts(r: torch.Tensor, derivative: bool = False):
     candidate quaternion ``q = (w, x, y, z)`` and ``k2, e, h`` ``(N,)``, with
     ``d out_j = k2 dq_j + q_j (e d + h dw)``, ``d = <q_xyz, dq_xyz>``, ``j = x, y, z``.
     """
+    out, rows, qv, raw = _log_terms(r)
+    return out, ((rows, qv, *log_coefficients(*raw)) if derivative else None)
+
+
+def _log_terms(r: torch.Tensor):
+    """:func:`_log_parts`' ``(out, rows, qv, raw)``, ``raw`` what :func:`log_coefficients`
+    makes ``k2, e, h`` from."""
     tab = _tables(r)
     f = torch.addmm(tab["quat_one"], tab["quat_table"], r.reshape(-1, 9).t())
     # the candidate of the largest pivot 4 q_k^2 (the first on ties): no square root of a small
@@ -351,16 +370,21 @@ def _log_parts(r: torch.Tensor, derivative: bool = False):
     neg = torch.reciprocal(_values(qw)) < 0
     ks = torch.where(neg, -k, k)
     out = torch.mm((ks * qv).t(), tab["two"]).reshape(*r.shape[:-2], 3)
-    if not derivative:
-        return out, None
+    return out, rows, qv, (s2, cw, k, ks, neg, qw)
+
+
+def log_coefficients(s2, cw, k, ks, neg, qw):
+    """``(k2, e, h)`` of :func:`_log_parts` from :func:`_log_terms`' ``raw``, of any one shape
+    (elementwise: one call for many steps' gives each step's values)."""
     # d k / d s2 and d k / d|w| of k = atan2(s, c) / s: (c / (s2 + c^2) - k) / (2 s2) loses
     # digits to cancellation at small s, but it multiplies q_xyz <q_xyz, g>, of size s^2 |g|:
     # the product keeps an absolute error of a few eps |g|
+    tab = _tables(s2)
     recip = torch.reciprocal(s2 + cw * cw)
     k_s2 = (cw * recip - k) / (2.0 * torch.clamp_min(s2, torch.finfo(s2.dtype).tiny))
     e = torch.where(neg, tab["minus_four"], tab["four"]) * k_s2
     # abs' derivative at w = 0 is 0 (autograd's sgn)
-    return out, (rows, qv, 2.0 * ks, e, -2.0 * recip * torch.sign(qw).abs())
+    return 2.0 * ks, e, -2.0 * recip * torch.sign(qw).abs()
 
 
 def _log_grad(r_shape, rows, qv, k2, e, h, grad):
@@ -402,6 +426,13 @@ def log(r: torch.Tensor) -> torch.Tensor:
 
 def _rminus_formula(y, x):
     return _log_parts(torch.matmul(x.transpose(-1, -2), y))[0]
+
+
+def rminus_parts(y: torch.Tensor, x: torch.Tensor) -> tuple:
+    """``(log(x^T y), (rows, qv), raw)``: :func:`rminus_values` with ``raw`` what
+    :func:`log_coefficients` makes the rest of its ``saved`` from (no graph)."""
+    out, rows, qv, raw = _log_terms(_matmul(x.transpose(-1, -2), y))
+    return out, (rows, qv), raw
 
 
 def rminus_values(y: torch.Tensor, x: torch.Tensor) -> tuple[torch.Tensor, tuple]:

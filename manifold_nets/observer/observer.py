@@ -13,7 +13,8 @@ starting from the identity, so the estimate never leaves the group. Each piece i
 :mod:`.measurement`, :mod:`.update`); the loop never asks which are there. The rollout
 (:meth:`ResidualObserver.forward`), the online step (:meth:`ResidualObserver.step`) and the
 exported step (:class:`manifold_nets.deploy.OnlineStep`) run the same :meth:`ResidualObserver.
-step_unchecked` with the same schedule (:meth:`ResidualObserver.schedule`).
+step_unchecked` with the same schedule (:meth:`ResidualObserver.schedule`); a training rollout
+of the paper's step runs its operations fused across steps (:func:`.fused.lean_steps`).
 
 Shapes: measurements ``(N, T, l)`` with ``measurements[:, k] = y_{k+1}``, inputs ``(N, T, m)``
 (``None`` when ``m == 0``); the rollout returns ``(N, T+1, *group.element_shape)``,
@@ -37,6 +38,7 @@ from ..cores import GRUCore, Hidden, RecurrentCore
 from .checks import check_sequences, check_start, check_step_args
 from .compiling import compiled
 from .features import Embedding, Feature, Readings, reads_as_one
+from .fused import lean_steps, runs_lean
 from .heads import Head, PlainHead
 from .measurement import Measurement
 from .priors import NoPrior, Prior
@@ -130,8 +132,7 @@ class ResidualObserver(nn.Module):
             )
         self.core = self._core(core)
         self._view = self.measurement.deferred_view if reads_as_one(self) else self.measurement.view
-        self._timed = [self.head, *self.scales]
-        self._compiled_step = None
+        self._timed, self._compiled_step = [self.head, *self.scales], None
 
     def _core(self, core: RecurrentCore | None) -> RecurrentCore:
         width = sum(f.width for f in self.features)
@@ -201,11 +202,8 @@ class ResidualObserver(nn.Module):
         """The timed pieces' values (the head's, then each scale's) at the step counts ``k``
         (float64, any shape), computed in float64 and cast to the network dtype; ``None`` for a
         piece without a schedule. The one schedule computation of every code path."""
-        out = []
-        for piece in self._timed:
-            s = piece.schedule(k)
-            out.append(None if s is None else s.to(device=self.device, dtype=self.net_dtype))
-        return out
+        values = [piece.schedule(k) for piece in self._timed]
+        return [s if s is None else s.to(device=self.device, dtype=self.net_dtype) for s in values]
 
     def schedule(self, k0: int, count: int) -> list[tuple]:
         """:meth:`schedule_at` for the ``count`` steps from ``x_{k0}`` on, one tuple per step."""
@@ -257,6 +255,18 @@ class ResidualObserver(nn.Module):
         run = self.rollout(measurements, inputs, state)
         return (run.estimates, run.final) if return_state else run.estimates
 
+    def _steps(self, x, hidden, inputs, keep_hidden: bool):
+        """The rollout's loop over ``inputs`` (``(yu, ys, measured, timed)`` per step): the
+        estimates ``x_0 .. x_T``, the hidden states kept and the last."""
+        compiled = self._compiled_step is not None and torch.is_grad_enabled()
+        step, xs, hs = self._compiled_step if compiled else self.step_unchecked, [x], [hidden]
+        for yu_k, ys_k, m_k, t_k in inputs:
+            x, hidden = step(x, hidden, yu_k, ys_k, m_k, t_k)
+            xs.append(x)
+            if keep_hidden:
+                hs.append(hidden)
+        return xs, hs, hidden
+
     def rollout(self, measurements, inputs=None, state: ObserverState | None = None,
                 keep_hidden: bool = False) -> Rollout:
         """:meth:`forward`'s rollout as a :class:`Rollout`; ``keep_hidden`` also keeps the
@@ -265,22 +275,13 @@ class ResidualObserver(nn.Module):
         n, steps = yu.shape[1], yu.shape[0]
         state = self.init_state(n, device=yu.device) if state is None else check_start(self, state, n)
         x, hidden = state.estimate.reshape(n, self.update.numel).to(self.state_dtype), state.hidden
-        measured = list(zip(*(m.unbind(0) for m in self.measurement.elements(ys))))
-        measured = measured or [()] * steps
-        step = self.step_unchecked
-        if self._compiled_step is not None and torch.is_grad_enabled():
-            step = self._compiled_step
-        xs, hs = [x], [hidden]
+        measured = list(zip(*(m.unbind(0) for m in self.measurement.elements(ys)))) or [()] * steps
         # unbind: one backward node for all the steps' slices (indexing would add one per step)
-        for yu_k, ys_k, m_k, t_k in zip(
-            yu.unbind(0), ys.unbind(0), measured, self.schedule(state.steps, steps)
-        ):
-            x, hidden = step(x, hidden, yu_k, ys_k, m_k, t_k)
-            xs.append(x)
-            if keep_hidden:
-                hs.append(hidden)
+        per_step = zip(yu.unbind(0), ys.unbind(0), measured, self.schedule(state.steps, steps))
+        loop = lean_steps if runs_lean(self) else ResidualObserver._steps  # (.fused)
+        xs, hs, hidden = loop(self, x, hidden, per_step, keep_hidden)
         est = torch.stack(xs, dim=1).unflatten(-1, self.group.element_shape)
-        final = ObserverState(x.view(n, *self.group.element_shape), hidden, state.steps + steps)
+        final = ObserverState(xs[-1].view(n, *est.shape[2:]), hidden, state.steps + steps)
         kept = tuple(torch.stack(h, dim=1) for h in zip(*hs)) if keep_hidden else None
         return Rollout(est, final, kept)
 
