@@ -26,7 +26,9 @@ from .observer.covariance import gaussian_nll, readout_inputs
 from .progress import progress
 from .training_losses import initial_state
 
-__all__ = ["Sequences", "readout_sequences", "fit_covariance", "mean_nll"]
+__all__ = [
+    "Sequences", "readout_sequences", "fit_covariance", "mean_nll", "factor_nees", "scale_to_heldout",
+]
 
 
 class Sequences(NamedTuple):
@@ -153,6 +155,41 @@ def fit_covariance(
             best, best_state = v, copy.deepcopy(readout.state_dict())
     readout.load_state_dict(best_state)
     return history
+
+
+@torch.no_grad()
+def factor_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int = 200) -> dict[str, float]:
+    """Per factor ``f`` of dimension ``d``: the mean of ``xi_f^T P_f^-1 xi_f / d`` over ``seqs``'
+    known steps (1 when the readout is calibrated on them)."""
+    from .calibration import nees
+
+    group, totals, count = readout.group, dict.fromkeys(readout.group.factor_names, 0.0), 0
+    for s in range(0, len(seqs), batch_size):
+        part = seqs.select(torch.arange(s, min(len(seqs), s + batch_size)))
+        chol, _ = readout.log_scale(part.features, part.starts)
+        cov = CovarianceReadout.covariance(chol)
+        for name in totals:
+            sl = group.tangent_slice(name)
+            q = nees(part.errors[..., sl], cov[..., sl, sl])[part.known]
+            totals[name] += float(q.sum()) / (sl.stop - sl.start)
+        count += int(part.known.sum())
+    if not count:
+        raise ValueError("the sequences have no known step to measure the readout on.")
+    return {name: t / count for name, t in totals.items()}
+
+
+def scale_to_heldout(readout: CovarianceReadout, heldout: Sequences) -> dict[str, float]:
+    """Scales each factor's block of ``P`` by its mean ``NEES / d`` on ``heldout`` (sequences
+    neither fitted nor used to pick the epoch), so that it is 1 there: the likelihood fit's
+    overall over- or under-confidence on fresh data, removed by one number per factor
+    (:meth:`CovarianceReadout.rescale`; a ``"joint"`` readout takes their mean for all).
+    Returns the scales applied."""
+    scales = factor_nees(readout, heldout)
+    if readout.structure == "joint":
+        mean = sum(scales.values()) / len(scales)
+        scales = dict.fromkeys(scales, mean)
+    readout.rescale(scales)
+    return scales
 
 
 #: The format of a readout file (:func:`save_readout`).

@@ -117,7 +117,7 @@ def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout
     from manifold_nets_examples.rigid_body import calibration as command
 
     command.main(["--out", str(tmp_path), "--cases", "nominal", "--sigmas", "0.3", "--train", "2",
-                  "--eval", "3", "--length", "30", "--epochs", "1"])
+                  "--eval", "3", "--length", "30", "--epochs", "1", "--heldout", "2"])
     table = (tmp_path / "calibration.md").read_text()
     assert "| 0.3 | learned |" in table and "| 0.3 | ekf |" in table
     rows = json.loads((tmp_path / "calibration.json").read_text())["cases"]["nominal"]["0.3"]
@@ -125,8 +125,10 @@ def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout
         assert set(rows[estimator]) == {"R", "p", "b_omega", "b_v"}
         assert all(math.isfinite(v) for v in rows[estimator]["R"].values())
     assert (tmp_path / "calibration_nominal.png").stat().st_size > 10_000
+    scales = json.loads((tmp_path / "calibration.json").read_text())["history"]["nominal"]["heldout_scales"]
+    assert set(scales) == {"R", "p", "b_omega", "b_v"} and all(v > 0 for v in scales.values())
     observer, _, _ = load_observer("zoo:rigid_body/nominal")
-    load_readout(tmp_path / "nominal_covariance.pt", observer)
+    assert load_readout(tmp_path / "nominal_covariance.pt", observer).readout.clock == command.CLOCK
 
 
 def test_evaluate_scores_the_covariance_of_an_estimator_that_gives_one():

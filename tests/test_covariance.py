@@ -278,3 +278,45 @@ def test_windows_carry_the_steps_they_start_after():
     assert out.start.tolist() == [0, 3, 6, 0, 3, 6]
     assert Sequences.cat([out.select(torch.tensor([1])), out]).starts.tolist() == [3, 0, 3, 6, 0, 3, 6]
     assert seqs.select(torch.tensor([1])).starts.tolist() == [0]  # whole sequences start at 0
+
+
+@pytest.mark.parametrize("structure", ["diagonal", "factor", "joint"])
+def test_rescale_multiplies_each_factor_s_block(structure):
+    r = CovarianceReadout(GROUP, 16, structure, memory=4)
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.3)
+    z = torch.randn(2, 5, 16)
+    before = r.covariance(r.log_scale(z)[0])
+    start = r.covariance(r.initial_cholesky())
+    scales = {"R": 2.0, "p": 2.0} if structure == "joint" else {"R": 4.0, "p": 0.25}
+    r.rescale(scales)
+    after = r.covariance(r.log_scale(z)[0])
+    for name, s in scales.items():
+        sl = GROUP.tangent_slice(name)
+        torch.testing.assert_close(after[..., sl, sl], s * before[..., sl, sl], rtol=1e-5, atol=0)
+        torch.testing.assert_close(r.covariance(r.initial_cholesky())[sl, sl], s * start[sl, sl],
+                                   rtol=1e-5, atol=0)
+    if structure == "joint":
+        torch.testing.assert_close(after, 2.0 * before, rtol=1e-5, atol=0)
+        with pytest.raises(ValueError, match="give every factor the same scale"):
+            r.rescale({"R": 2.0, "p": 3.0})
+    for bad in ({"q": 2.0}, {"R": 0.0}, {"R": float("inf")}, {"R": True}):
+        with pytest.raises(ValueError, match="positive finite scales"):
+            r.rescale(bad)
+
+
+def test_scaling_to_held_out_sequences_makes_each_factor_s_mean_nees_one():
+    from manifold_nets.covariance_training import factor_nees, scale_to_heldout
+
+    gen = torch.Generator().manual_seed(3)
+    r = CovarianceReadout(GROUP, 16, "factor", memory=4)
+    errors = torch.randn(6, 20, 6, generator=gen, dtype=torch.float64) * torch.tensor([0.1] * 3 + [2.0] * 3).double()
+    known = torch.ones(6, 20, dtype=torch.bool)
+    known[:, :3] = False
+    seqs = Sequences(torch.randn(6, 20, 16, generator=gen), errors, known)
+    before = factor_nees(r, seqs)
+    assert before["R"] < 0.1 and before["p"] > 3  # P = I: R's errors small, p's large
+    scales = scale_to_heldout(r, seqs)
+    assert scales == pytest.approx(before)
+    assert factor_nees(r, seqs) == pytest.approx({"R": 1.0, "p": 1.0}, rel=1e-5)

@@ -5,16 +5,19 @@ every noise level and under each model mismatch.
 
     python -m manifold_nets_examples.rigid_body.calibration --out outputs/calibration
     python -m manifold_nets_examples.rigid_body.calibration --cases nominal --sigmas 0.1 0.5 \\
-        --train 20 --eval 20 --length 100 --epochs 2 --out /tmp/cal     # a quick look
+        --train 20 --eval 20 --length 100 --epochs 2 --heldout 5 --out /tmp/cal   # a quick look
 
 For each case (a zoo observer and the system it is scored on):
 
 1. a :class:`~manifold_nets.observer.CovarianceReadout` (per-factor blocks, reading the residuals
-   of the measured pose, a 32-wide memory) is
-   fitted to the frozen observer's errors on ``--train`` sequences per noise level of the case's
-   own system (seeds 1000 + i; :func:`manifold_nets.covariance_training.fit_covariance`) and
-   written to ``OUT/<case>_covariance.pt`` (:func:`~manifold_nets.covariance_training.
-   load_readout` reads it back);
+   of the measured pose and a clock of the step, ``--clock`` time constants; a 32-wide memory) is
+   fitted to the frozen observer's errors on ``--train`` sequences of ``--length`` steps per
+   noise level of the case's own system (seeds 1000 + i; ``--train / 4`` more, seeds 2000 + i,
+   pick the epoch: :func:`manifold_nets.covariance_training.fit_covariance`), each factor's
+   scale then set on ``--heldout`` fresh sequences per noise level (seeds 3000 + i;
+   :func:`~manifold_nets.covariance_training.scale_to_heldout`), and written to
+   ``OUT/<case>_covariance.pt`` (:func:`~manifold_nets.covariance_training.load_readout` reads
+   it back);
 2. on ``--eval`` fresh sequences per noise level (seed 7), the learned observer's and the nominal
    EKF's calibration (:mod:`manifold_nets.calibration`) over the steps ``k >= 10``: ANEES per
    factor, the share of steps whose ANEES is inside its 95 % band, the share of errors inside the
@@ -44,6 +47,7 @@ from manifold_nets.covariance_training import (
     fit_covariance,
     readout_sequences,
     save_readout,
+    scale_to_heldout,
 )
 from manifold_nets.observer import CalibratedObserver, CovarianceReadout
 from manifold_nets.observer.covariance import input_width
@@ -64,6 +68,9 @@ CASES = {
 }
 SIGMAS = (0.1, 0.2, 0.3, 0.4, 0.5)
 SKIP = 10
+#: The readouts' clock (time constants in steps): the errors' spread changes with the step while
+#: the biases converge and after, which a readout of the residuals alone cannot tell.
+CLOCK = (10.0, 50.0, 250.0, 1000.0)
 
 
 def _system(entry: str, overrides: dict | None):
@@ -77,21 +84,26 @@ def _sim(system, n: int, length: int, sigma: float, seed: int):
     return system.simulate(n, length, sigma, torch.Generator().manual_seed(seed))
 
 
-def _fit(observer, system, args) -> tuple[CovarianceReadout, list[dict]]:
-    train = Sequences.cat([
-        readout_sequences(observer, _sim(system, args.train, args.length, s, 1000 + i), skip=SKIP)
+def _sequences(observer, system, args, n: int, seed: int) -> Sequences:
+    return Sequences.cat([
+        readout_sequences(observer, _sim(system, n, args.length, s, seed + i), skip=SKIP)
         for i, s in enumerate(args.sigmas)
     ])
-    val = Sequences.cat([
-        readout_sequences(
-            observer, _sim(system, max(2, args.train // 4), args.length, s, 2000 + i), skip=SKIP
-        )
-        for i, s in enumerate(args.sigmas)
-    ])
+
+
+def _fit(observer, system, args) -> tuple[CovarianceReadout, dict]:
+    train = _sequences(observer, system, args, args.train, 1000)
+    val = _sequences(observer, system, args, max(2, args.train // 4), 2000)
     width = input_width(observer, "residual")
-    readout = CovarianceReadout(observer.group, width, "factor", memory=args.memory)
-    history = fit_covariance(readout, train, val, epochs=args.epochs, lr=args.lr, batch_size=4)
-    return readout, history
+    torch.manual_seed(args.seed)  # the readout's initial weights
+    readout = CovarianceReadout(observer.group, width, "factor", memory=args.memory,
+                                clock=tuple(args.clock))
+    history = fit_covariance(readout, train, val, epochs=args.epochs, lr=args.lr,
+                             batch_size=args.batch_size)
+    scales = None
+    if args.heldout:  # fresh sequences: neither fitted nor used to pick the epoch
+        scales = scale_to_heldout(readout, _sequences(observer, system, args, args.heldout, 3000))
+    return readout, {"epochs": history, "heldout_scales": scales}
 
 
 def _row(group, est, cov, states) -> dict:
@@ -149,12 +161,18 @@ def main(argv=None) -> None:
     p.add_argument("--out", required=True, help="the folder the tables, figures and readouts go to")
     p.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     p.add_argument("--sigmas", nargs="+", type=float, default=list(SIGMAS))
-    p.add_argument("--train", type=int, default=40, help="training sequences per noise level")
+    p.add_argument("--train", type=int, default=200, help="training sequences per noise level")
     p.add_argument("--eval", type=int, default=100, help="evaluation sequences per noise level")
-    p.add_argument("--length", type=int, default=300, help="steps per sequence")
-    p.add_argument("--epochs", type=int, default=30)
+    p.add_argument("--length", type=int, default=1000, help="steps per sequence")
+    p.add_argument("--clock", nargs="*", type=float, default=list(CLOCK),
+                   help="the readout's clock: time constants in steps (none: no clock)")
+    p.add_argument("--epochs", type=int, default=10)
     p.add_argument("--lr", type=float, default=3e-3)
+    p.add_argument("--batch-size", type=int, default=16, help="sequences per update")
+    p.add_argument("--heldout", type=int, default=40,
+                   help="fresh sequences per noise level each factor's scale is set on (0: none)")
     p.add_argument("--memory", type=int, default=32)
+    p.add_argument("--seed", type=int, default=0, help="the readouts' initial weights")
     p.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
     use_threads(args.threads)

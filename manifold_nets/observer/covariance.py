@@ -190,6 +190,32 @@ class CovarianceReadout(nn.Module):
             self.out.bias.copy_(raw)
             self.initial.copy_(raw)
 
+    def rescale(self, factor_scales: dict[str, float]) -> None:
+        """Multiplies every ``P`` (and the start's) by ``factor_scales[f]`` on factor ``f``'s
+        block (positive; a factor not named keeps its scale) by moving the log-diagonal's bias
+        (``L = C diag(exp(d))``: ``d`` of ``f``'s components plus ``log(s_f) / 2``; the same
+        ``P`` to rounding). Blocks of ``C`` do not mix factors unless the structure is
+        ``"joint"``, whose factors must then share one scale."""
+        import math
+
+        log_half = torch.zeros(self.n, dtype=torch.float64)
+        for name, s in factor_scales.items():
+            if name not in self.group.factor_names or isinstance(s, bool) or not (
+                isinstance(s, (int, float)) and math.isfinite(s) and s > 0
+            ):
+                raise ValueError(
+                    f"rescale: expected positive finite scales of the factors "
+                    f"{list(self.group.factor_names)}, got {name!r}: {s!r}."
+                )
+            log_half[self.group.tangent_slice(name)] = 0.5 * math.log(s)
+        if self.structure == "joint" and len(set(log_half.tolist())) > 1:
+            raise ValueError("rescale: a joint readout's factors are correlated; give every "
+                             "factor the same scale.")
+        shift = log_half[self.rows[self.on_diagonal]].to(self.out.bias.dtype)
+        with torch.no_grad():
+            self.out.bias[self.on_diagonal] += shift
+            self.initial[self.on_diagonal] += shift
+
     def initial_memory(self, batch: int, device=None) -> torch.Tensor:
         """The readout's own state before the first step, ``(B, memory)``."""
         w = self.out.weight
