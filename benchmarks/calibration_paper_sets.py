@@ -45,7 +45,8 @@ def _command(case: str, out: Path, covariance_dir: Path | None, ekf: bool) -> li
 def _rows(run: Path) -> list[dict]:
     rows = []
     for path in sorted((run / "results").glob("**/metrics.json")):
-        rows += json.loads(path.read_text())["table"]
+        metrics = json.loads(path.read_text())
+        rows += metrics["table"] + metrics.get("references", [])  # the baselines' rows
     return rows
 
 
@@ -72,12 +73,15 @@ def main(argv=None) -> None:
                    help="score <case>_covariance.pt from this folder instead of the zoo's")
     p.add_argument("--no-ekf", action="store_true", help="the learned observer only")
     p.add_argument("--write", type=Path, default=None, help="also write PATH.md and PATH.json")
+    p.add_argument("--gather-only", action="store_true",
+                   help="do not evaluate: gather the tables of the runs already in --out")
     args = p.parse_args(argv)
     results, commands = {}, {}
     for case in args.cases:
         commands[case] = _command(case, args.out, args.covariance_dir, not args.no_ekf)
         print(" ".join(commands[case]), flush=True)
-        subprocess.run(commands[case], check=True, stdout=subprocess.DEVNULL)
+        if not args.gather_only:
+            subprocess.run(commands[case], check=True, stdout=subprocess.DEVNULL)
         results[case] = _rows(args.out / case)
         for r in results[case]:
             print(case, r["sigma"], r["method"], {k: r[k] for k in r if "ANEES" in k or "band" in k},
