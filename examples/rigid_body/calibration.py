@@ -166,7 +166,7 @@ def main(argv=None) -> None:
     p.add_argument("--length", type=int, default=1000, help="steps per sequence")
     p.add_argument("--clock", nargs="*", type=float, default=list(CLOCK),
                    help="the readout's clock: time constants in steps (none: no clock)")
-    p.add_argument("--epochs", type=int, default=10)
+    p.add_argument("--epochs", type=int, default=20)
     p.add_argument("--lr", type=float, default=3e-3)
     p.add_argument("--batch-size", type=int, default=16, help="sequences per update")
     p.add_argument("--heldout", type=int, default=40,
