@@ -62,6 +62,17 @@ def test_the_configs_are_package_data():
     assert configs.joinpath("debug", "tiny.yaml").is_file()
 
 
+def test_every_zoo_file_is_package_data():
+    """A zoo entry's card, config, checkpoint and covariance readout all go into the wheel (the
+    readouts once did not: ``load_readout(zoo_path(...) / "covariance.pt")`` failed installed)."""
+    examples = ROOT / "examples"
+    shipped = {p for pattern in SETUPTOOLS["package-data"]["manifold_nets_examples"]
+               for p in examples.glob(pattern)}
+    zoo = {p for p in examples.glob("*/zoo/**/*") if p.is_file() and "__pycache__" not in p.parts}
+    assert zoo and sorted(map(str, zoo - shipped)) == []
+    assert any(p.name == "covariance.pt" for p in shipped)
+
+
 def test_the_commands_load_the_installed_configs_and_are_console_scripts():
     from manifold_nets.cli import CONFIG_PATH
 
