@@ -8,7 +8,6 @@ stands in for the recordings, so these run without ../shared.
 from __future__ import annotations
 
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -26,6 +25,7 @@ from manifold_nets_examples.broad.learning import RandomMounting, measured_start
 from manifold_nets_examples.broad.metric import errors, quat_to_matrix
 from manifold_nets_examples.broad.rate import decimate, upsample
 from manifold_nets_examples.broad.simulator import BROAD_DT, BroadSimulator
+from tests.broad_checks import tiny_split
 
 FIXTURE = Path(__file__).parent / "fixtures" / "broad" / "excerpt.mat"
 G = SO3()
@@ -88,21 +88,10 @@ def test_the_measured_start_is_near_the_reference(trial):
     assert float(deg.median()) < 10.0 and float(deg.max()) < 25.0
 
 
-def _tiny_split(tmp_path: Path) -> tuple[Path, Path]:
-    data = tmp_path / "mat"
-    data.mkdir()
-    for name in ("tr", "va", "te"):
-        shutil.copyfile(FIXTURE, data / f"{name}.mat")
-    split = tmp_path / "trials.yaml"
-    split.write_text(yaml.safe_dump({"data_dir": str(data),
-                                     "splits": {"train": ["tr"], "val": ["va"], "test": ["te"]}}))
-    return data, split
-
-
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory) -> Path:
     tmp = tmp_path_factory.mktemp("broad")
-    _, split = _tiny_split(tmp)
+    _, split = tiny_split(tmp)
     train_cmd.main([
         "--split", str(split), "--out", str(tmp / "run"), "--hidden-size", "8",
         "--num-layers", "1", "--decimation", "4", "--pretrain-sequences", "8",
@@ -158,7 +147,7 @@ def test_apply_refuses_a_bad_output_name_before_any_work(tiny_run, tmp_path):
 def test_the_compare_command_puts_the_learned_row_beside_the_filters(tiny_run, tmp_path):
     from manifold_nets_examples.broad import compare
 
-    data, split = _tiny_split(tmp_path)
+    data, split = tiny_split(tmp_path)
     tuned = Path(__file__).parents[1] / "benchmarks" / "results" / "broad_tuned.json"
     compare.main([
         "--data-dir", str(data), "--config", str(split), "--out", str(tmp_path / "cmp"),

@@ -7,7 +7,6 @@ from __future__ import annotations
 
 import json
 import math
-import shutil
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +28,7 @@ from manifold_nets_examples.broad.prefilter import (
     rest_bias,
     strapdown,
 )
+from tests.broad_checks import tiny_split
 
 FIXTURE = Path(__file__).parent / "fixtures" / "broad" / "excerpt.mat"
 G = SO3()
@@ -199,13 +199,7 @@ def test_the_6d_reference_rows_track_the_excerpt(trial):
 @pytest.fixture(scope="module")
 def six_d_runs(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("broad6")
-    data = tmp / "mat"
-    data.mkdir()
-    for name in ("tr", "va", "te"):
-        shutil.copyfile(FIXTURE, data / f"{name}.mat")
-    split = tmp / "trials.yaml"
-    split.write_text(yaml.safe_dump({"data_dir": str(data),
-                                     "splits": {"train": ["tr"], "val": ["va"], "test": ["te"]}}))
+    _, split = tiny_split(tmp)
     common = ["--split", str(split), "--hidden-size", "8", "--num-layers", "1", "--decimation",
               "4", "--pretrain-sequences", "4", "--pretrain-length", "16", "--pretrain-epochs",
               "1", "--window", "32", "--stride", "64", "--finetune-epochs", "1", "--batch-size",
