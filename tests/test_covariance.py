@@ -320,3 +320,31 @@ def test_scaling_to_held_out_sequences_makes_each_factor_s_mean_nees_one():
     scales = scale_to_heldout(r, seqs)
     assert scales == pytest.approx(before)
     assert factor_nees(r, seqs) == pytest.approx({"R": 1.0, "p": 1.0}, rel=1e-5)
+
+
+def test_a_clock_reads_the_observer_s_own_step_count_in_the_exported_step():
+    """An observer whose pieces count steps (a step decay) carries ``steps`` in its exported
+    state already: the readout's clock reads it, no second counter."""
+    from manifold_nets.observer import StepDecay
+
+    torch.manual_seed(0)
+    obs = ResidualObserver(GROUP, Measurement(12, factors={"R": [0, 9], "p": [9, 12]}),
+                           core=partial(GRUCore, hidden_size=8, num_layers=2),
+                           scales=[StepDecay({"p": 3})])
+    with torch.no_grad():
+        obs.core.head.weight.normal_(0, 0.1)
+    r = CovarianceReadout(GROUP, input_width(obs, "residual"), "factor", memory=4, clock=(2.0,))
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.3)
+    cal = CalibratedObserver(obs, r)
+    step = cal.online_step_module()
+    plain = obs.online_step_module()
+    assert plain.clock and len(step.initial_state(2)) == len(plain.initial_state(2)) + 1  # + memory
+    y = _measurements(2, 6)
+    with torch.no_grad():
+        _, cov = cal(y)
+        flat = step.initial_state(2)
+        for k in range(6):
+            *flat, P = step(*flat, y[:, k])
+            torch.testing.assert_close(P, cov[:, k + 1], rtol=1e-6, atol=1e-12)

@@ -39,6 +39,7 @@ estimates are the observer's to the last bit.
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import torch
@@ -112,8 +113,6 @@ MAX_CLOCK = 8
 def check_clock(clock) -> tuple[float, ...]:
     """``clock`` as a tuple of time constants in steps (finite, positive; at most
     :data:`MAX_CLOCK`), or ``ValueError`` naming the problem."""
-    import math
-
     values = tuple(clock) if isinstance(clock, (list, tuple)) else None
     if values is None or len(values) > MAX_CLOCK or not all(
         isinstance(t, (int, float)) and not isinstance(t, bool) and math.isfinite(t) and t > 0
@@ -161,7 +160,8 @@ class CovarianceReadout(nn.Module):
         self.register_buffer("shift", torch.zeros(width))
         self.register_buffer("scale", torch.ones(width))
         reads = width + len(self.clock)
-        self.register_buffer("taus", torch.tensor(self.clock or [1.0]), persistent=False)
+        if self.clock:
+            self.register_buffer("taus", torch.tensor(self.clock), persistent=False)
         self.gru = nn.GRU(reads, memory, batch_first=True) if memory else None
         self.out = nn.Linear(memory or reads, len(rows))
         self.initial = nn.Parameter(torch.zeros(len(rows)))
@@ -196,8 +196,6 @@ class CovarianceReadout(nn.Module):
         (``L = C diag(exp(d))``: ``d`` of ``f``'s components plus ``log(s_f) / 2``; the same
         ``P`` to rounding). Blocks of ``C`` do not mix factors unless the structure is
         ``"joint"``, whose factors must then share one scale."""
-        import math
-
         log_half = torch.zeros(self.n, dtype=torch.float64)
         for name, s in factor_scales.items():
             if name not in self.group.factor_names or isinstance(s, bool) or not (
@@ -354,30 +352,33 @@ class CalibratedObserver(nn.Module):
 class CalibratedStep(nn.Module):
     """:class:`manifold_nets.deploy.OnlineStep` of the observer, then ``P``:
     ``(x, *state, memory[, clock_steps], y[, u]) -> (x_next, *state_next, memory_next
-    [, clock_steps_next], P)`` (``P`` ``(B, n, n)``, float64; ``clock_steps`` ``(B,)`` float64,
-    the steps taken, only for a readout with a clock). Each module sits at one place in it
-    (``step.observer``, ``readout``): ``torch.export``'s non-strict tracer patches a module class
-    reached by two paths, and the patch outlived the export."""
+    [, clock_steps_next], P)`` (``P`` ``(B, n, n)``, float64). A readout with a clock reads the
+    steps taken from the observer's own ``steps`` state tensor where it has one (a centred head,
+    a step decay), else from ``clock_steps`` ``(B,)`` (float64), one more state tensor. Each
+    module sits at one place in it (``step.observer``, ``readout``): ``torch.export``'s
+    non-strict tracer patches a module class reached by two paths, and the patch outlived the
+    export."""
 
     def __init__(self, calibrated: CalibratedObserver):
         super().__init__()
         self.step = calibrated.observer.online_step_module()
         self.readout = calibrated.readout
         self.layers = len(calibrated.observer.core.initial_hidden(1))
-        self.clock = bool(self.readout.clock)
+        self.own_count = bool(self.readout.clock) and not self.step.clock
 
     def initial_state(self, batch: int = 1):
-        steps = (torch.zeros(batch, dtype=torch.float64),) if self.clock else ()
+        steps = (torch.zeros(batch, dtype=torch.float64),) if self.own_count else ()
         return (*self.step.initial_state(batch), self.readout.initial_memory(batch), *steps)
 
     def forward(self, x: torch.Tensor, *args: torch.Tensor):
         k = self.step.num_hidden  # the observer's state tensors after x, then the memory
         state, memory = args[:k], args[k]
-        steps, rest = (args[k + 1], args[k + 2 :]) if self.clock else (None, args[k + 1 :])
+        steps, rest = (args[k + 1], args[k + 2 :]) if self.own_count else (None, args[k + 1 :])
         out = self.step(x, *state, *rest)
         u = rest[1] if len(rest) > 1 else None
         z = readout_inputs(self.step.observer, self.readout.source, out[0], rest[0], u,
                            out[1 : 1 + self.layers])
-        chol, memory = self.readout.cholesky(z.unsqueeze(1), memory, 0 if steps is None else steps)
+        start = steps if steps is not None else state[-1] if self.step.clock else 0
+        chol, memory = self.readout.cholesky(z.unsqueeze(1), memory, start)
         count = () if steps is None else (steps + 1,)
         return (*out, memory, *count, CovarianceReadout.covariance(chol[:, 0]))
