@@ -71,7 +71,7 @@ class ModelConfig:
     (:mod:`manifold_nets.observer`; docs/observer.md lists them)::
 
         measurement: {factors: {R: [0, 9], p: [9, 12]}}        # type: measurement | robust
-        prior: {type: system}                                    # none | system | robust_system | kinematic
+        prior: {type: system}                # none | system | robust_system | kinematic | complementary
         features: [embedding, readings, innovation]              # or {type: embedding, drop: [p]}
         head: {type: centred, c: 0.85, ramp: 50}                 # plain | gain | centred
         scales: [{type: step_decay, factors: {b_v: 70}}]         # output | step_decay
@@ -100,7 +100,8 @@ class ModelConfig:
     #: factor's embedding (its innovation is then read); ``type: robust`` (with ``width``,
     #: ``span``) weighs each innovation by a learned robust weight. Empty: nothing measured.
     measurement: dict[str, Any] = field(default_factory=dict)
-    #: The prior block (``type: none | system | robust_system | kinematic``); ``null``: none.
+    #: The prior block (``type: none | system | robust_system | kinematic | complementary``);
+    #: ``null``: none.
     #: (A string ``none``/``system`` is the first format's.)
     prior: Any = None
     #: The feature blocks, in order (a name alone is ``{type: name}``); ``null``: the paper's

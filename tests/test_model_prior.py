@@ -164,7 +164,7 @@ def test_the_signature_records_the_prior_and_a_checkpoint_needs_it():
 def test_bad_prior_settings_say_what_is_wrong():
     system = RigidBody()
     with pytest.raises(ValueError, match=r"model.prior.type: 'kalman' is not a prior piece; the "
-                                         r"priors are \['kinematic', 'none', 'robust_system', "
+                                         r"priors are \['complementary', 'kinematic', 'none', 'robust_system', "
                                          r"'system'"):
         build_observer(system.group, 18, 0, _model(prior={"type": "kalman"}), system=system)
     with pytest.raises(ValueError, match=r"model.prior \(system\): needs \['system'\] \(pass "

@@ -5,11 +5,11 @@ the loop                :class:`ResidualObserver`, :class:`ObserverState`
 the group update        :class:`GroupUpdate` (per-factor rules, the state dtype)
 what it reads           :class:`Measurement`, :class:`RobustMeasurement`
 priors                  :class:`NoPrior`, :class:`SystemPrior`, :class:`RobustSystemPrior`,
-                        :class:`KinematicPrior`
+                        :class:`KinematicPrior`, :class:`ComplementaryPrior`
 features                :class:`Embedding`, :class:`Readings`, :class:`Innovation`,
                         :class:`Rotated`, :class:`FramedInnovation`
 heads                   :class:`PlainHead`, :class:`GainHead`, :class:`CentredHead`
-step scales             :class:`OutputScale`, :class:`StepDecay`
+step scales             :class:`OutputScale`, :class:`StepDecay`, :class:`Projection`
 a covariance            :class:`CovarianceReadout`, :class:`CalibratedObserver`
 a readings pre-filter   :class:`ReadingsFilter`, :class:`FilteredObserver`,
                         :func:`with_readings_filter`
@@ -25,19 +25,27 @@ from .heads import CentredHead, GainHead, Head, PlainHead
 from .measurement import Measurement, RobustMeasurement, StepView
 from .observer import ObserverState, ResidualObserver, Rollout
 from .piece import PIECES, Piece
-from .priors import KinematicPrior, NoPrior, Prior, RobustSystemPrior, SystemPrior
+from .priors import (
+    ComplementaryPrior,
+    KinematicPrior,
+    NoPrior,
+    Prior,
+    RobustSystemPrior,
+    SystemPrior,
+)
 from .readings_filter import ReadingsFilter
 from .robust import RobustWeights
-from .scales import OutputScale, StepDecay, StepScale
+from .scales import OutputScale, Projection, StepDecay, StepScale
 from .update import UPDATE_RULES, GroupUpdate
 
 __all__ = [
     "ResidualObserver", "ObserverState", "Rollout", "GroupUpdate", "UPDATE_RULES",
     "Measurement", "RobustMeasurement", "StepView", "Piece", "PIECES",
     "Prior", "NoPrior", "SystemPrior", "RobustSystemPrior", "KinematicPrior",
+    "ComplementaryPrior",
     "Feature", "Embedding", "Readings", "Innovation", "Rotated", "FramedInnovation",
     "Head", "PlainHead", "GainHead", "CentredHead",
-    "StepScale", "OutputScale", "StepDecay", "RobustWeights",
+    "StepScale", "OutputScale", "StepDecay", "Projection", "RobustWeights",
     "CovarianceReadout", "CalibratedObserver",
     "ReadingsFilter", "FilteredObserver", "FilteredState", "with_readings_filter",
 ]

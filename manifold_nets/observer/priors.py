@@ -9,7 +9,10 @@ the core learns what a filter's update adds to the prediction, not the predictio
   learned M-estimator weight function, ``d_i <- w_i(|d_i|) d_i``, ``d = System.compensated_drive``
   (a reading the motion cannot produce, an outlier, is pulled in before it moves anything);
 * :class:`KinematicPrior`: named factors move by a measured velocity, ``x_f <- x_f exp(dt u_f)``
-  (a gyroscope's rate), the rest stays.
+  (a gyroscope's rate), the rest stays;
+* :class:`ComplementaryPrior`: after another prior, an attitude factor turns a fixed fraction of
+  the way that aligns a measured direction with its known reference (the correction of Mahony's
+  explicit complementary filter: an accelerometer's "up"); the network learns what it misses.
 
 Interface: ``forward(x (B, numel) state dtype, yu (B, l + m) network dtype, ys (B, l + m) state
 dtype) -> x^- (B, numel)``.
@@ -18,12 +21,16 @@ dtype) -> x^- (B, numel)``.
 from __future__ import annotations
 
 
-from groups import Euclidean
+import torch
+
+from groups import SO3, Euclidean
 
 from .piece import Piece, check_factor, check_int, check_number, check_spans
 from .robust import MAX_SIZE, RobustWeights
 
-__all__ = ["Prior", "NoPrior", "SystemPrior", "RobustSystemPrior", "KinematicPrior"]
+__all__ = [
+    "Prior", "NoPrior", "SystemPrior", "RobustSystemPrior", "KinematicPrior", "ComplementaryPrior",
+]
 
 
 class Prior(Piece):
@@ -168,3 +175,85 @@ class KinematicPrior(Prior):
         return x
 
 
+
+
+class ComplementaryPrior(Prior):
+    """After ``inner``, the SO(3) factor ``R`` turns towards a measured direction's reference:
+
+    ``R^- <- exp((dt / tau) (R^- v / |v|) x r) R^-``, ``v = (y, u)[start:stop]`` a body-frame
+    vector whose world-frame direction is the unit ``r`` (an accelerometer reads "up" at rest),
+    the explicit complementary filter's correction (Mahony, Hamel and Pflimlin, IEEE TAC 2008)
+    in the world frame with time constant ``tau``: a tilt off by a small angle decays as
+    ``exp(-t / tau)``. The correction has no weights; the core sees ``R^-`` and learns what it
+    misses (linear acceleration, the heading, the rest). A zero ``v`` (a zeroed sensor) corrects
+    nothing.
+
+    Args:
+        factor: the SO(3) factor it corrects.
+        vector: ``(start, stop)``, the 3 entries of ``(y, u)`` holding ``v`` (low-passed
+            readings make a better ``v``; the correction is only as good as its direction).
+        tau: the time constant in seconds (> 0); dt: the step length in seconds (> 0; a builder
+            gives the system's); reference: ``r`` (any non-zero length; default up, ``(0, 0, 1)``).
+        inner: the prior it follows (default none; a kinematic prior integrates the gyroscope).
+    """
+
+    name = "complementary"
+
+    def __init__(self, factor: str, vector, tau: float, dt: float, reference=(0.0, 0.0, 1.0),
+                 inner: Prior | None = None):
+        super().__init__()
+        self.factor = str(factor)
+        self.vector = check_spans("complementary prior: vector", {"v": vector}, "(y, u)")["v"]
+        self.tau = check_number("complementary prior: tau", tau, 1e-9, 1e9, " (seconds)")
+        self.dt = check_number("complementary prior: dt", dt, 1e-12, 1e6, " (seconds)")
+        try:
+            ref = [float(c) for c in reference]
+        except (TypeError, ValueError):
+            ref = []
+        norm = sum(c * c for c in ref) ** 0.5
+        if len(ref) != 3 or not 0 < norm < float("inf"):
+            raise ValueError(f"complementary prior: reference must be 3 finite numbers, not all "
+                             f"zero (a direction; up is [0, 0, 1]), got {reference!r}.")
+        self.reference = ref
+        self.register_buffer("_r", torch.tensor([c / norm for c in ref], dtype=torch.float64),
+                             persistent=False)
+        self.inner = NoPrior() if inner is None else inner
+        if not isinstance(self.inner, Prior) or isinstance(self.inner, ComplementaryPrior):
+            raise ValueError("complementary prior: inner must be another kind of prior (none, "
+                             "system, robust_system, kinematic).")
+
+    def bind(self, group, measurement):
+        self.inner.bind(group, measurement)
+        check_factor("complementary prior: factor", group, self.factor)
+        if not isinstance(group.factor(self.factor), SO3):
+            raise ValueError(f"complementary prior: factor {self.factor!r} is "
+                             f"{group.factor(self.factor)!r}; it corrects an SO(3) factor.")
+        a, b = self.vector
+        width = measurement.dim + measurement.input_dim
+        if not (0 <= a and b <= width and b - a == 3):
+            raise ValueError(f"complementary prior: vector = ({a}, {b}) must be a span of (y, u) "
+                             f"(size {width}) of 3 entries.")
+        self._slice = group.element_slice(self.factor)
+        return self
+
+    def settings(self):
+        out = {"factor": self.factor, "vector": list(self.vector), "tau": self.tau, "dt": self.dt,
+               "reference": self.reference}
+        if not isinstance(self.inner, NoPrior):
+            out["inner"] = self.inner.signature()
+        return out
+
+    def widen(self, state, prefix, old):
+        """From its inner prior (it adds no weight; it computes what its settings say)."""
+        inner_old = old.get("inner", {"type": "none"}) if (old or {}).get("type") == self.name else old
+        return self.inner.widen(state, prefix + "inner.", inner_old)
+
+    def forward(self, x, yu, ys):
+        x = self.inner(x, yu, ys)
+        R = x[:, self._slice].unflatten(-1, (3, 3))
+        v = (R @ ys[:, self.vector[0] : self.vector[1], None].to(x.dtype))[..., 0]
+        n = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+        w = torch.linalg.cross(v / n.clamp_min(1e-30), self._r.to(x).expand_as(v))
+        x = x.clone()  # R stays a view of the inner prior's output, which autograd needs
+        x[:, self._slice] = (SO3().exp(w * (self.dt / self.tau)) @ R).flatten(-2)
+        return x

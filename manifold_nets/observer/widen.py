@@ -9,7 +9,8 @@ whose settings it changes (a centring, a step decay: those compute what their se
   (a :class:`~manifold_nets.cores.GRUCore`), wherever it sits in the list;
 * every other piece says how it widens (:meth:`Piece.widen`): learned robust weights start as the
   identity, a gain head's ``K`` at zero, an output scale rescales the head; pieces without
-  weights (a centring, a step decay, their settings) load across any settings.
+  weights (a centring, a step decay, a complementary prior's correction, their settings) load
+  across any settings.
 
 What cannot be widened (another group, measurement, core type or size, a feature the trained
 observer read but this one does not) raises ``ValueError`` naming it.
@@ -41,7 +42,7 @@ def widen_state(observer, state: dict, found: dict) -> dict:
             _same(f"core.{key}", fc.get(key), oc.get(key))
     state = _widen_features(observer, dict(state), list(found.get("features", [])))
     pieces = observer.pieces()
-    _only_adds("prior", _base(found.get("prior")), _base(own["prior"]))
+    _only_adds("prior", _unwrapped(found.get("prior")), _unwrapped(own["prior"]))
     _only_adds("head", _inner(found.get("head")), _inner(own["head"]))
     _only_adds("measurement", _base(fm), _base(om))
     old_scales = {s.get("type"): s for s in found.get("scales", [])}
@@ -62,6 +63,13 @@ _WIDENS = {"system": "robust_system", "measurement": "robust", "plain": "gain"}
 
 def _base(sig: dict | None) -> str:
     return (sig or {}).get("type", "none")
+
+
+def _unwrapped(sig: dict | None) -> str:
+    """A prior's type less a complementary correction (which adds no weight)."""
+    sig = sig or {"type": "none"}
+    return sig.get("inner", {"type": "none"})["type"] if sig.get("type") == "complementary" \
+        else sig.get("type", "none")
 
 
 def _inner(sig: dict | None) -> str:
