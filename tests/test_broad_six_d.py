@@ -205,7 +205,7 @@ def six_d_runs(tmp_path_factory):
               "1", "--window", "32", "--stride", "64", "--finetune-epochs", "1", "--batch-size",
               "4", "--mounting", "0"]  # fmt: skip
     train_cmd.main([*common, "--out", str(tmp / "r6"), "--magnetometer", "0",
-                    "--acc-lowpass", "0.5", "--rest-bias", "1"])  # fmt: skip
+                    "--acc-lowpass", "0.5", "--rest-bias", "1", "--tilt-tau", "1.5"])  # fmt: skip
     train_cmd.main([*common, "--out", str(tmp / "r9")])
     return tmp, split
 
@@ -225,6 +225,43 @@ def test_a_6d_run_records_what_it_reads_and_is_scored_on_whole_trials(six_d_runs
                                         "rest_bias": False}
     res = json.loads((tmp / "r6" / "results" / "learned_test.json").read_text())
     assert math.isfinite(res["mean"]["inclination"])
+    prior = load_observer(tmp / "r6")[0].signature()["prior"]
+    assert (prior["type"], prior["tau"], prior["inner"]["type"]) == ("complementary", 1.5,
+                                                                     "kinematic")  # fmt: skip
+
+
+def test_a_run_from_an_observer_without_the_tilt_correction_adds_it(six_d_runs, trial):
+    """``--init-from`` an observer trained without ``--tilt-tau``: the new run's observer is the
+    old one's weights behind the tilt correction (untrained here: its own checkpoint is written,
+    not the old one's file), and it levels a tilted estimate the old one leaves; with
+    ``--heading-only 1`` its tilt is the correction's alone, ``t <- t - (dt / tau) sin t``."""
+    from manifold_nets import load_observer
+
+    tmp, split = six_d_runs
+    train_cmd.main(["--split", str(split), "--out", str(tmp / "r9t"), "--init-from",
+                    str(tmp / "r9"), "--hidden-size", "8", "--num-layers", "1", "--decimation",
+                    "4", "--pretrain-epochs", "0", "--finetune-epochs", "0", "--tilt-tau", "0.5",
+                    "--eval-splits", "test", "--heading-only", "1"])  # fmt: skip
+    old, system, _ = load_observer(tmp / "r9")
+    new, _, _ = load_observer(tmp / "r9t")
+    assert new.signature()["prior"]["type"] == "complementary"
+    assert new.signature()["scales"][0] == {"type": "projection", "factors": {"x": [[0, 0, 1]]}}
+    for (k, a), b in zip(old.state_dict().items(), new.state_dict().values()):
+        assert torch.equal(a, b), k
+    y = torch.zeros(1, 40, 6, dtype=torch.float64)
+    y[..., 2], y[..., 4] = 1.0, 1.0  # at rest: up, and a field to the north
+    tilted = SO3().exp(torch.tensor([[0.2, 0.0, 0.0]], dtype=torch.float64))
+    tilts = []
+    for obs in (old.double(), new.double()):
+        start = obs.init_state(1)._replace(estimate=tilted)
+        with torch.no_grad():
+            R = obs(y, torch.zeros(1, 40, 3, dtype=torch.float64), start)[0, -1]
+        tilts.append(torch.arccos(R[2, 2]).item())
+    assert tilts[1] < 0.2 * math.exp(-40 * system.dt / 0.5) * 1.5 < tilts[0]
+    t = 0.2
+    for _ in range(40):
+        t -= system.dt / 0.5 * math.sin(t)
+    assert tilts[1] == pytest.approx(t, abs=1e-9)
 
 
 def test_the_six_d_command_writes_the_rows_and_the_cascade(six_d_runs):

@@ -13,6 +13,14 @@ re-learn integration to 1e-4 rad per step:
 * the rotated feature, ``{type: rotated, vectors: {x: [[0, 3], [3, 6]]}}``: the core also reads
   ``R^- acc`` and ``R^- mag``, the readings in the world frame, where their error against "up"
   and "north" is linear;
+* optionally (``broad.train --tilt-tau 3``) the complementary prior after the kinematic one,
+  ``{type: complementary, factor: x, vector: [0, 3], tau: 3.0, inner: <the kinematic prior>}``:
+  ``R^-`` turned by ``dt / tau`` of the angle between ``R^- acc`` and "up" (Mahony's explicit
+  complementary correction), so the network learns what a fixed tilt correction misses rather
+  than the whole correction;
+* optionally (``--heading-only 1``) the projection scale ``{type: projection, factors: {x:
+  [[0, 0, 1]]}}``: the world-frame correction is a turn about "up", so the network moves the
+  heading only and the tilt is the complementary prior's;
 * an output scale, ``scales: [{type: output, scale: 0.01}]``: corrections are ~1e-3 rad per
   step, so the head's output is scaled down (the optimiser's steps on its weights stay in
   proportion);
@@ -57,18 +65,27 @@ _SO3 = SO3()
 
 
 def model_config(
-    hidden_size: int = 64, num_layers: int = 2, output_scale: float = 0.01
+    hidden_size: int = 64, num_layers: int = 2, output_scale: float = 0.01, tilt_tau: float = 0.0,
+    heading_only: bool = False,
 ) -> ModelConfig:
-    """The BROAD observer's model config (see the module docstring)."""
+    """The BROAD observer's model config (see the module docstring); ``tilt_tau > 0`` (seconds)
+    adds the complementary prior's tilt correction towards the accelerometer after the
+    gyroscope's step; ``heading_only`` projects the core's correction onto "up" (a turn about
+    the vertical: it moves the heading only)."""
+    prior = {"type": "kinematic", "velocities": {"x": [6, 9]}}  # the gyroscope, integrated
+    if tilt_tau > 0:
+        prior = {"type": "complementary", "factor": "x", "vector": [0, 3], "tau": tilt_tau,
+                 "inner": prior}  # fmt: skip
     return ModelConfig(
         hidden_size=hidden_size,
         num_layers=num_layers,
         updates={"x": "left"},
-        prior={"type": "kinematic", "velocities": {"x": [6, 9]}},  # the gyroscope, integrated
+        prior=prior,
         features=[
             "embedding", "readings", {"type": "rotated", "vectors": {"x": [[0, 3], [3, 6]]}},
         ],
-        scales=[{"type": "output", "scale": output_scale}],
+        scales=([{"type": "projection", "factors": {"x": [[0.0, 0.0, 1.0]]}}] if heading_only
+                else []) + [{"type": "output", "scale": output_scale}],
     )
 
 

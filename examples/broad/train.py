@@ -45,7 +45,7 @@ import yaml
 
 from manifold_nets import TrainSettings, fit
 from manifold_nets.atomic import atomic_open, write_text_atomic
-from manifold_nets.checkpoint import load_weights
+from manifold_nets.checkpoint import load_weights, save_checkpoint
 from manifold_nets.destination import check_destination
 from manifold_nets.threads import use_threads
 from manifold_nets.training import check_settings
@@ -95,6 +95,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--rest-bias", type=int, choices=(0, 1), default=0,
                    help="1: the gyroscope's bias from rest removed before the observer reads it "
                         "(prefilter.py)")
+    p.add_argument("--tilt-tau", type=float, default=0.0,
+                   help="seconds: the complementary prior's tilt correction towards the "
+                        "accelerometer after the gyroscope's step (learning.py); 0: none")
+    p.add_argument("--heading-only", type=int, choices=(0, 1), default=0,
+                   help="1: the network's correction turns the estimate about 'up' only (the "
+                        "tilt is left to --tilt-tau's correction)")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--start-std", type=float, default=0.05,
@@ -133,6 +139,9 @@ def check_args(args) -> None:
             raise bad("--" + flag.replace("_", "-"), "a finite number > 0", getattr(args, flag))
     if not (math.isfinite(args.acc_lowpass) and args.acc_lowpass >= 0):
         raise bad("--acc-lowpass", "a finite number >= 0 (seconds; 0: raw)", args.acc_lowpass)
+    if not (math.isfinite(args.tilt_tau) and args.tilt_tau >= 0):
+        raise bad("--tilt-tau", "a finite number >= 0 (seconds; 0: no tilt correction)",
+                  args.tilt_tau)
     if not (math.isfinite(args.start_std) and args.start_std >= 0):
         raise bad("--start-std", "a finite number >= 0 (radians)", args.start_std)
     if not 0 <= args.mounting <= math.pi:
@@ -254,16 +263,19 @@ def prepare(args) -> dict:
     system = BroadSimulator(  # the observer's step, and how it reads the recordings
         dt=args.decimation * BROAD_DT, magnetometer=bool(args.magnetometer),
         acc_lowpass=args.acc_lowpass, rest_bias=bool(args.rest_bias))
-    model_cfg = model_config(args.hidden_size, args.num_layers, args.output_scale)
+    model_cfg = model_config(args.hidden_size, args.num_layers, args.output_scale, args.tilt_tau,
+                             bool(args.heading_only))
     model = make_observer(system, model_cfg, args.seed)
     for epochs in (args.pretrain_epochs, args.finetune_epochs):
         check_settings(settings(args, epochs))
     init = None
     if args.init_from:
-        try:
-            init = load_weights(model, args.init_from)[0]
+        try:  # widened: a run may add the tilt correction to an observer trained without it
+            init, ckpt = load_weights(model, args.init_from, widen=True)
         except (ValueError, OSError) as err:
             raise ValueError(f"--init-from {args.init_from}: {err}") from None
+        if ckpt["signature"] != model.signature():  # nothing to copy: the model is another
+            init = {"model": model.state_dict(), "signature": model.signature(), "epoch": 0}
     return {
         "out": out, "system": system, "model": model, "model_cfg": model_cfg,
         "windows": windows(args, trials) if stages else None, "init": init,
@@ -285,8 +297,12 @@ def run(args) -> Path:
     if args.finetune_epochs > 0:
         best = finetune(args, system, model, out, ready["windows"], config)
         load_weights(model, best)
-    with open(best, "rb") as src, atomic_open(out / "checkpoints" / "best.pt", "wb") as dst:
-        shutil.copyfileobj(src, dst)
+    if isinstance(best, dict):  # --init-from widened and not trained: this model's weights
+        (out / "checkpoints").mkdir(parents=True, exist_ok=True)
+        save_checkpoint(out / "checkpoints" / "best.pt", {**best, "config": config})
+    else:
+        with open(best, "rb") as src, atomic_open(out / "checkpoints" / "best.pt", "wb") as dst:
+            shutil.copyfileobj(src, dst)
     return out
 
 
