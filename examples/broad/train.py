@@ -142,6 +142,10 @@ def check_args(args) -> None:
     if not (math.isfinite(args.tilt_tau) and args.tilt_tau >= 0):
         raise bad("--tilt-tau", "a finite number >= 0 (seconds; 0: no tilt correction)",
                   args.tilt_tau)
+    if args.heading_only and not args.tilt_tau > 0:
+        raise ValueError("--heading-only 1 leaves the tilt to --tilt-tau's correction, and "
+                         "--tilt-tau is 0: nothing would correct the tilt; give --tilt-tau "
+                         "(seconds, e.g. 3) or drop --heading-only.")
     if not (math.isfinite(args.start_std) and args.start_std >= 0):
         raise bad("--start-std", "a finite number >= 0 (radians)", args.start_std)
     if not 0 <= args.mounting <= math.pi:
