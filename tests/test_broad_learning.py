@@ -152,15 +152,18 @@ def test_the_compare_command_puts_the_learned_row_beside_the_filters(tiny_run, t
     compare.main([
         "--data-dir", str(data), "--config", str(split), "--out", str(tmp_path / "cmp"),
         "--split", "test", "--methods", "vqf", "--tuned", str(tuned),
-        "--learned", f"learned={tiny_run}",
+        "--learned", f"learned={tiny_run}", "--learned", "shipped=zoo:broad/attitude",
     ])
     table = (tmp_path / "cmp" / "table.md").read_text()
-    assert "| learned |" in table and "| vqf |" in table
+    assert "| learned |" in table and "| vqf |" in table and "| shipped |" in table
     assert (tmp_path / "cmp" / "figures" / "te.png").is_file()
     with pytest.raises(SystemExit, match="--learned takes LABEL=RUN"):
         compare.main(["--out", str(tmp_path / "x"), "--learned", str(tiny_run)])
     with pytest.raises(SystemExit, match="label 'vqf' is taken"):
         compare.main(["--out", str(tmp_path / "x"), "--learned", f"vqf={tiny_run}"])
+    with pytest.raises(SystemExit, match="--learned x=zoo:broad/nope: zoo:broad/nope is not an "
+                                         "installed zoo entry; the entries are"):
+        compare.main(["--out", str(tmp_path / "x"), "--learned", "x=zoo:broad/nope"])
 
 
 def test_the_shipped_observer_loads_and_tracks_the_excerpt(trial, tmp_path):

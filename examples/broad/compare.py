@@ -31,6 +31,7 @@ import numpy as np
 
 from manifold_nets.atomic import atomic_open, write_text_atomic
 from manifold_nets.destination import check_destination
+from manifold_nets.plugins import locate
 from manifold_nets.threads import use_threads
 
 from .data import BroadFormatError, Trial, read_trials, split_trials
@@ -190,7 +191,8 @@ def write_results(out, splits: dict, trials: dict, estimates: dict, published=No
 
 
 def _parse_learned(items: list[str]) -> dict[str, Path]:
-    """``{label: run folder}`` from ``LABEL=RUN`` arguments, checked before any work."""
+    """``{label: run folder}`` from ``LABEL=RUN`` arguments (``RUN`` a run folder, a checkpoint or
+    ``zoo:<entry>``), checked before any work."""
     out = {}
     for item in items:
         label, sep, run = item.partition("=")
@@ -198,9 +200,13 @@ def _parse_learned(items: list[str]) -> dict[str, Path]:
             raise ValueError(f"--learned takes LABEL=RUN (e.g. learned=runs/broad), got {item!r}.")
         if label in CLASSICAL or label in out:
             raise ValueError(f"--learned label {label!r} is taken; choose another.")
-        if not Path(run).exists():
+        try:
+            path = locate(run)  # a run folder, a checkpoint or zoo:<entry>
+        except ValueError as err:
+            raise ValueError(f"--learned {label}={run}: {err}") from None
+        if not path.exists():
             raise ValueError(f"--learned {label}={run}: no such run folder or checkpoint.")
-        out[label] = Path(run)
+        out[label] = path
     return out
 
 
