@@ -175,8 +175,6 @@ class KinematicPrior(Prior):
         return x
 
 
-
-
 class ComplementaryPrior(Prior):
     """After ``inner``, the SO(3) factor ``R`` turns towards a measured direction's reference:
 
@@ -233,7 +231,7 @@ class ComplementaryPrior(Prior):
         if not (0 <= a and b <= width and b - a == 3):
             raise ValueError(f"complementary prior: vector = ({a}, {b}) must be a span of (y, u) "
                              f"(size {width}) of 3 entries.")
-        self._slice = group.element_slice(self.factor)
+        self._slice, self._so3 = group.element_slice(self.factor), group.factor(self.factor)
         return self
 
     def settings(self):
@@ -255,5 +253,5 @@ class ComplementaryPrior(Prior):
         n = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
         w = torch.linalg.cross(v / n.clamp_min(1e-30), self._r.to(x).expand_as(v))
         x = x.clone()  # R stays a view of the inner prior's output, which autograd needs
-        x[:, self._slice] = (SO3().exp(w * (self.dt / self.tau)) @ R).flatten(-2)
+        x[:, self._slice] = (self._so3.exp(w * (self.dt / self.tau)) @ R).flatten(-2)
         return x

@@ -42,8 +42,9 @@ def widen_state(observer, state: dict, found: dict) -> dict:
             _same(f"core.{key}", fc.get(key), oc.get(key))
     state = _widen_features(observer, dict(state), list(found.get("features", [])))
     pieces = observer.pieces()
-    _only_adds("prior", _unwrapped(found.get("prior")), _unwrapped(own["prior"]))
-    _only_adds("head", _inner(found.get("head")), _inner(own["head"]))
+    for kind, wrapper, default in (("prior", "complementary", "none"), ("head", "centred", "plain")):
+        _only_adds(kind, _unwrapped(found.get(kind), wrapper, default),
+                   _unwrapped(own[kind], wrapper, default))
     _only_adds("measurement", _base(fm), _base(om))
     old_scales = {s.get("type"): s for s in found.get("scales", [])}
     gone = sorted(set(old_scales) - {s.name for s in observer.scales} - {"output"})
@@ -65,17 +66,13 @@ def _base(sig: dict | None) -> str:
     return (sig or {}).get("type", "none")
 
 
-def _unwrapped(sig: dict | None) -> str:
-    """A prior's type less a complementary correction (which adds no weight)."""
-    sig = sig or {"type": "none"}
-    return sig.get("inner", {"type": "none"})["type"] if sig.get("type") == "complementary" \
-        else sig.get("type", "none")
-
-
-def _inner(sig: dict | None) -> str:
-    """A head's type less a centring (which adds no weight): ``plain`` or ``gain``."""
-    sig = sig or {"type": "plain"}
-    return sig.get("inner", {"type": "plain"})["type"] if sig.get("type") == "centred" else sig["type"]
+def _unwrapped(sig: dict | None, wrapper: str, default: str) -> str:
+    """A piece's type less a weightless wrapper around an inner piece (a head's centring, a
+    prior's complementary correction); ``default`` where there is none."""
+    sig = sig or {"type": default}
+    if sig.get("type") == wrapper:
+        sig = sig.get("inner", {"type": default})
+    return sig.get("type", default)
 
 
 def _only_adds(kind: str, old: str, new: str) -> None:
