@@ -24,7 +24,10 @@ from manifold_nets.deploy import OnlineStep
 from manifold_nets.evaluation import evaluate, rollout
 from manifold_nets.observer import GroupUpdate, ResidualObserver
 from manifold_nets.training import fit
-from tests.observer_checks import run_tiny
+from manifold_nets.observer.fused import runs_lean
+from tests.observer_checks import rigid_readings, run_tiny
+from tests.test_observer_lean_loop import _observer as _lean_observer
+from tests.test_observer_lean_loop import _train as _lean_train
 
 ZOO = [
     "zoo:rigid_body/paper",
@@ -171,3 +174,23 @@ def test_the_train_command_on_the_device(tmp_path, device):
     assert (tmp_path / "run" / "results" / "table.md").is_file()
     loaded = load_observer(tmp_path / "run")  # the files are the CPU's to read
     assert {p.device.type for p in loaded.observer.parameters()} == {"cpu"}
+
+
+def test_the_lean_rollout_on_the_device_follows_the_step_by_step_one(device, monkeypatch,
+                                                                     record_property):
+    """The lean rollout (``fused.lean_steps``, ``tests/test_observer_lean_loop.py``) runs on the
+    device and gives the step-by-step rollout's estimates, loss and gradients there: to the bit
+    on the CPU, to float32 rounding on a GPU (relative to each tensor's largest entry)."""
+    y, x = (t.to(device) for t in rigid_readings(n=64, t=20))
+    lean_obs = _lean_observer().to(device)
+    assert runs_lean(lean_obs)
+    n_params = len(list(lean_obs.parameters()))
+    lean = _lean_train(lean_obs, y, x, True, monkeypatch, steps=1)[:-n_params]
+    plain = _lean_train(_lean_observer().to(device), y, x, False, monkeypatch, steps=1)
+    plain = plain[:-n_params]  # (after one AdamW step, ~lr * sign(g): not a rounding measure)
+    assert len(lean) == len(plain) == 2 + n_params
+    assert all(a.device == device for a in lean)
+    worst = max(float((a - b).abs().max() / b.abs().max().clamp_min(1e-30))
+                for a, b in zip(lean, plain))
+    record_property("lean_rollout_relative_deviation", worst)
+    assert worst <= _bound(device, 1e-4), worst
