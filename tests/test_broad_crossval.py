@@ -1,0 +1,83 @@
+"""``broad.crossval``: k-fold cross-validation over trials, on two copies of the committed excerpt
+(tests/fixtures/broad/, CC-BY-4.0) as two folds, tiny runs trained per fold."""
+
+from __future__ import annotations
+
+import json
+import math
+import shutil
+
+import numpy as np
+import pytest
+import yaml
+
+from manifold_nets_examples.broad import crossval
+from manifold_nets_examples.broad import train as train_cmd
+from tests.broad_checks import FIXTURE
+
+
+def _fold(folder, name, train, held):
+    path = folder / f"{name}.yaml"
+    path.write_text(yaml.safe_dump({"data_dir": str(folder / "mat"),
+                                    "splits": {"train": train, "val": held, "test": held}}))
+    return str(path)
+
+
+@pytest.fixture(scope="module")
+def folds(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("cv")
+    (tmp / "mat").mkdir()
+    for name in ("a", "b"):
+        shutil.copyfile(FIXTURE, tmp / "mat" / f"{name}.mat")
+    f1, f2 = _fold(tmp, "f1", ["b"], ["a"]), _fold(tmp, "f2", ["a"], ["b"])
+    common = ["--hidden-size", "8", "--num-layers", "1", "--decimation", "4",
+              "--pretrain-sequences", "0", "--window", "32", "--stride", "64",
+              "--finetune-epochs", "1", "--batch-size", "4", "--mounting", "0",
+              "--eval-splits", "val"]  # fmt: skip
+    for seed in (0, 1):
+        for k, f in ((1, f1), (2, f2)):
+            train_cmd.main([*common, "--split", f, "--seed", str(seed),
+                            "--out", str(tmp / f"r{k}_s{seed}")])  # fmt: skip
+    return tmp, f1, f2
+
+
+def test_each_trial_is_scored_by_the_run_that_did_not_train_on_it(folds):
+    pytest.importorskip("vqf")
+    tmp, f1, f2 = folds
+    out = tmp / "table"
+    crossval.main(["--out", str(out), "--folds", f"{f1},{f2}",
+                   "--runs", f"c={tmp / 'r1_s0'},{tmp / 'r2_s0'}",
+                   "--runs", f"c={tmp / 'r1_s1'},{tmp / 'r2_s1'}"])  # fmt: skip
+    got = json.loads((out / "metrics.json").read_text())
+    assert got["chosen"] == "c" and set(got["rows"]) == {"vqf", "c"}
+    row = got["rows"]["c"]
+    # each seed's figure: the mean over both folds of what train stored for its held-out trial
+    for seed, figures in enumerate(row["per_seed"]):
+        stored = [json.loads((tmp / f"r{k}_s{seed}" / "results" / "learned_val.json").read_text())
+                  for k in (1, 2)]  # fmt: skip
+        for m in ("total", "heading", "inclination"):
+            assert math.isclose(figures[m], np.mean([s["mean"][m] for s in stored]), rel_tol=1e-9)
+    totals = [f["total"] for f in row["per_seed"]]
+    assert math.isclose(row["mean"]["total"], np.mean(totals), rel_tol=1e-12)
+    assert math.isclose(row["std"]["total"], np.std(totals, ddof=1), rel_tol=1e-9)
+    assert row["folds"] == [row["trials"]["a"], row["trials"]["b"]]
+    assert "lowest mean total (the selection rule): **c**" in (out / "table.md").read_text().lower()
+
+
+def test_runs_out_of_fold_order_overlapping_folds_and_leaks_are_refused(folds):
+    tmp, f1, f2 = folds
+    out = str(tmp / "refused")
+    swapped = f"c={tmp / 'r2_s0'},{tmp / 'r1_s0'}"
+    with pytest.raises(SystemExit, match="in the order of --folds"):
+        crossval.main(["--out", out, "--folds", f"{f1},{f2}", "--runs", swapped])
+    with pytest.raises(SystemExit, match="overlap"):
+        crossval.main(["--out", out, "--folds", f"{f1},{f1}", "--runs", swapped])
+    leak = _fold(tmp, "leak", ["a", "b"], ["a"])
+    with pytest.raises(SystemExit, match="trains on held-out"):
+        crossval.main(["--out", out, "--folds", f"{leak},{f2}", "--runs", swapped])
+    with pytest.raises(SystemExit, match="one run per fold"):
+        crossval.main(["--out", out, "--folds", f"{f1},{f2}", "--runs", f"c={tmp / 'r1_s0'}"])
+    with pytest.raises(SystemExit, match="no such run"):
+        crossval.main(["--out", out, "--folds", f"{f1},{f2}",
+                       "--runs", f"c={tmp / 'r1_s0'},{tmp / 'nowhere'}"])  # fmt: skip
+    assert not (tmp / "refused").exists()  # nothing written by a refused call
