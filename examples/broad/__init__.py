@@ -12,5 +12,6 @@ https://github.com/dlaidig/broad). Modules:
 * :mod:`.train`, :mod:`.evaluate`, :mod:`.apply`  the commands for the learned observer;
 * :mod:`.filters`    classical filters: Mahony's complementary filter, the project's EKF;
 * :mod:`.reference`  rows from maintained packages (VQF, ahrs) and the authors' published numbers;
-* :mod:`.compare`    the comparison table, figures and the command that writes them.
+* :mod:`.compare`    the comparison table, figures and the command that writes them;
+* :mod:`.seeds`, :mod:`.crossval`  configurations over seeds, and over cross-validation folds.
 """
