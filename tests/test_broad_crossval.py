@@ -38,6 +38,8 @@ def folds(tmp_path_factory):
         for k, f in ((1, f1), (2, f2)):
             train_cmd.main([*common, "--split", f, "--seed", str(seed),
                             "--out", str(tmp / f"r{k}_s{seed}")])  # fmt: skip
+    # a fold-2 run whose estimates differ from fold 1's even untrained (a tilt correction)
+    train_cmd.main([*common, "--split", f2, "--tilt-tau", "1.5", "--out", str(tmp / "r2_tilt")])
     return tmp, f1, f2
 
 
@@ -81,3 +83,50 @@ def test_runs_out_of_fold_order_overlapping_folds_and_leaks_are_refused(folds):
         crossval.main(["--out", out, "--folds", f"{f1},{f2}",
                        "--runs", f"c={tmp / 'r1_s0'},{tmp / 'nowhere'}"])  # fmt: skip
     assert not (tmp / "refused").exists()  # nothing written by a refused call
+
+
+def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_not_train_on_it(
+    folds,
+):
+    import argparse
+
+    import torch
+
+    from manifold_nets import load_observer
+    from manifold_nets.covariance_training import readout_sequences
+    from manifold_nets_examples.broad.calibration import _cross_fitted, _decimated, _windows
+    from manifold_nets_examples.broad.data import read_trials
+    from manifold_nets_examples.broad.learning import measured_start
+
+    tmp, f1, f2 = folds
+    runs = (tmp / "r1_s0", tmp / "r2_tilt")
+    observer = load_observer(runs[0]).observer
+    args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=",".join(map(str, runs)), window=16,
+                              data_dir=None)  # fmt: skip
+    got = _cross_fitted(args, observer)
+
+    def through(run, name):
+        obs, system, _ = load_observer(run)
+        data = _decimated(read_trials(tmp / "mat", [name]), system)
+        return _windows(readout_sequences(obs, data, "readings", skip=1,
+                                          start=measured_start(system)), 16)  # fmt: skip
+
+    # by hand: fold 1's run on trial a, fold 2's on trial b, each cut into windows
+    want = [through(runs[0], "a"), through(runs[1], "b")]
+    assert torch.equal(got.errors, torch.cat([w.errors for w in want]))
+    assert torch.equal(got.features, torch.cat([w.features for w in want]))
+    assert got.errors.shape[1] == 16 and got.known.sum() == sum(w.known.sum() for w in want)
+    # fold 2's errors are its own run's, not fold 1's run's on the same trial
+    assert not torch.equal(through(runs[0], "b").errors, want[1].errors)
+    swapped = argparse.Namespace(**{**vars(args), "cv_runs": f"{runs[1]},{runs[0]}"})
+    with pytest.raises(SystemExit, match="in the order of --folds"):
+        _cross_fitted(swapped, observer)
+
+
+def test_the_cross_fitted_calibration_refuses_a_hidden_state_source(tmp_path):
+    from manifold_nets_examples.broad import calibration
+
+    with pytest.raises(SystemExit, match="--fit cv takes --sources readings"):
+        calibration.main(["--fit", "cv", "--out", str(tmp_path / "c"), "--folds", "a.yaml",
+                          "--cv-runs", "r"])  # fmt: skip
+    assert not (tmp_path / "c").exists()

@@ -11,7 +11,13 @@ factor (it reads the IMU), so the readout reads either the IMU readings of each 
 (per-factor blocks, a 32-wide memory) is fitted to the attitude errors ``Log(Rhat^T R_ref)`` on
 the training trials (``--fit val``: the validation trials, which the observer was not trained on;
 cut into windows of ``--window`` observer steps; the reference's unknown samples left out), the
-one of lowest NLL on the other split is kept, and on the test
+one of lowest NLL on the other split is kept. ``--fit cv`` fits a ``readings`` readout to
+errors no observer made on its own training trials: each cross-validation fold's run
+(``--cv-runs``, one per ``--folds`` split file, as ``broad.crossval`` takes them) on that
+fold's held-out trials, every training and validation trial once; the readings do not depend on
+the observer, so the readout then serves ``--observer`` (the run of fold 1 when that is the
+fixed split's); with no trial left to choose an epoch on, the epoch of lowest NLL on the fitted
+errors is kept. On the test
 trials (never used to fit or choose) each trial's time-averaged NEES / 3 and the share of its
 errors inside the 1, 2 and 3 sigma ellipsoids (Gaussian: 19.9 / 73.9 / 97.1 %) are reported, at
 the observer's steps where the reference is known and the IMU moves (the benchmark's samples).
@@ -85,6 +91,33 @@ def _windows(seqs: Sequences, window: int) -> Sequences:
     return out.select(keep.nonzero().squeeze(-1))
 
 
+def _cross_fitted(args, observer) -> Sequences:
+    """``--fit cv``'s sequences: each fold's run on the fold's held-out trials (``readings``)."""
+    from .crossval import check_run_fold, fold_trials
+
+    folds = [f for f in args.folds.split(",") if f]
+    runs = [Path(r) for r in args.cv_runs.split(",") if r]
+    try:
+        data_dir, held = fold_trials(folds)
+        if len(runs) != len(folds):
+            raise ValueError(f"--cv-runs: one run per fold ({len(folds)}), got {len(runs)}.")
+        parts = []
+        for run, names, fold in zip(runs, held, folds):
+            check_run_fold(run, names, fold)
+            obs, system, _ = load_observer(run)
+            if input_width(obs, "readings") != input_width(observer, "readings"):
+                raise ValueError(f"--cv-runs {run}: reads {input_width(obs, 'readings')} numbers "
+                                 f"a step, --observer {input_width(observer, 'readings')}.")
+            start = measured_start(system) if input_settings(system)["magnetometer"] \
+                else tilt_start(system)  # fmt: skip
+            data = _decimated(read_trials(args.data_dir or data_dir, names), system)
+            seqs = readout_sequences(obs, data, "readings", skip=1, start=start)
+            parts.append(_windows(seqs, args.window))  # (the folds' trials differ in length)
+    except (ValueError, OSError) as err:
+        raise SystemExit(f"error: {err}") from None
+    return Sequences.cat(parts)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True)
@@ -92,12 +125,19 @@ def main(argv=None) -> None:
     p.add_argument("--sources", nargs="+", default=["readings", "hidden"], choices=["readings", "hidden"])
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--window", type=int, default=400, help="observer steps per training window")
-    p.add_argument("--fit", default="train", choices=["train", "val"],
-                   help="the trials the readout is fitted to (the other split picks the source)")
+    p.add_argument("--fit", default="train", choices=["train", "val", "cv"],
+                   help="the trials the readout is fitted to (the other split picks the source); "
+                        "cv: each fold's held-out trials as its run estimates them")
+    p.add_argument("--folds", default=None, help="--fit cv: the folds' split files, comma-separated")
+    p.add_argument("--cv-runs", default=None,
+                   help="--fit cv: one run folder per fold, comma-separated, in --folds' order")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
     use_threads(args.threads)
+    if args.fit == "cv" and (args.sources != ["readings"] or not args.folds or not args.cv_runs):
+        raise SystemExit("error: --fit cv takes --sources readings (each fold's observer has a "
+                         "hidden state of its own), --folds and --cv-runs.")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     data_dir, split = split_trials(None)
@@ -110,10 +150,14 @@ def main(argv=None) -> None:
     }
     test_trials = read_trials(data_dir, split["test"])
     fits, best = {}, None
+    cv = _cross_fitted(args, observer) if args.fit == "cv" else None
     for source in args.sources:
         other = "val" if args.fit == "train" else "train"
-        train, val = (readout_sequences(observer, data[s], source, skip=1, start=start)
-                      for s in (args.fit, other))
+        if cv is not None:
+            train = val = cv
+        else:
+            train, val = (readout_sequences(observer, data[s], source, skip=1, start=start)
+                          for s in (args.fit, other))
         readout = CovarianceReadout(observer.group, input_width(observer, source), "factor", 32, source)
         history = fit_covariance(readout, _windows(train, args.window), val, epochs=args.epochs,
                                  lr=3e-3, batch_size=4)

@@ -38,7 +38,7 @@ from .data import read_trials, split_trials
 from .metric import rmse
 from .seeds import run_estimates
 
-__all__ = ["fold_trials", "cv_rows", "main"]
+__all__ = ["fold_trials", "check_run_fold", "cv_rows", "main"]
 
 
 def fold_trials(folds: list[str]) -> tuple[str, list[list[str]]]:
@@ -61,7 +61,7 @@ def fold_trials(folds: list[str]) -> tuple[str, list[list[str]]]:
     return data_dir, held
 
 
-def _run_fold(run: Path, held: list[str], fold: str) -> None:
+def check_run_fold(run: Path, held: list[str], fold: str) -> None:
     """Raises ``ValueError`` unless ``run`` was trained with a split whose held-out trials are
     ``held`` (its ``command.json``; no split there: the default trials.yaml)."""
     try:
@@ -157,7 +157,7 @@ def main(argv=None) -> None:
         for seeds in groups.values():
             for runs in seeds:
                 for k, (run, names) in enumerate(zip(runs, held)):
-                    _run_fold(run, names, folds[k])
+                    check_run_fold(run, names, folds[k])
         out = check_destination(a.out, folder=True)
         names = [n for f in held for n in f]
         trials = {t.name: t for t in read_trials(a.data_dir or default_dir, names)}
