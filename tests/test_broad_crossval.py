@@ -82,6 +82,16 @@ def test_runs_out_of_fold_order_overlapping_folds_and_leaks_are_refused(folds):
     with pytest.raises(SystemExit, match="no such run"):
         crossval.main(["--out", out, "--folds", f"{f1},{f2}",
                        "--runs", f"c={tmp / 'r1_s0'},{tmp / 'nowhere'}"])  # fmt: skip
+    hostile = tmp / "hostile"
+    shutil.copytree(tmp / "r2_s0", hostile)
+    (hostile / "command.json").write_text(json.dumps({"split": "/dev/zero"}))
+    with pytest.raises(SystemExit, match="/dev/zero is not a file"):
+        crossval.main(["--out", out, "--folds", f"{f1},{f2}",
+                       "--runs", f"c={tmp / 'r1_s0'},{hostile}"])  # fmt: skip
+    (hostile / "command.json").write_text(" " * (2 << 20))
+    with pytest.raises(SystemExit, match="over 1048576 bytes"):
+        crossval.main(["--out", out, "--folds", f"{f1},{f2}",
+                       "--runs", f"c={tmp / 'r1_s0'},{hostile}"])  # fmt: skip
     assert not (tmp / "refused").exists()  # nothing written by a refused call
 
 

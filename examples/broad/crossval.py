@@ -31,6 +31,7 @@ import numpy as np
 
 from manifold_nets.atomic import write_text_atomic
 from manifold_nets.destination import check_destination
+from manifold_nets.loading import MAX_CONFIG_BYTES
 from manifold_nets.threads import use_threads
 
 from .compare import ATTRIBUTION, METRICS
@@ -46,7 +47,7 @@ def fold_trials(folds: list[str]) -> tuple[str, list[list[str]]]:
     ``ValueError`` where folds overlap or a fold trains on its own held-out trials."""
     data_dir, held = None, []
     for path in folds:
-        d, splits = split_trials(path)
+        d, splits = split_trials(_small_file(path, "--folds"))
         out, train = splits.get("val", []), splits.get("train", [])
         if not out:
             raise ValueError(f"--folds {path}: its 'val' split (the held-out trials) is empty.")
@@ -61,14 +62,27 @@ def fold_trials(folds: list[str]) -> tuple[str, list[list[str]]]:
     return data_dir, held
 
 
+def _small_file(path, what: str) -> Path:
+    """``path`` if it is a regular file of at most :data:`MAX_CONFIG_BYTES` (a run folder's files
+    are hostile: a device or a huge file is never read); ``ValueError`` naming it otherwise."""
+    path = Path(path)
+    if not path.is_file():
+        raise ValueError(f"{what} {path} is not a file.")
+    if path.stat().st_size > MAX_CONFIG_BYTES:
+        raise ValueError(f"{what} {path} is over {MAX_CONFIG_BYTES} bytes.")
+    return path
+
+
 def check_run_fold(run: Path, held: list[str], fold: str) -> None:
     """Raises ``ValueError`` unless ``run`` was trained with a split whose held-out trials are
     ``held`` (its ``command.json``; no split there: the default trials.yaml)."""
     try:
-        command = json.loads((run / "command.json").read_text())
+        command = json.loads(_small_file(run / "command.json", "the run's").read_text())
         split = command.get("split") if isinstance(command, dict) else None
-        _, splits = split_trials(split)
-    except (OSError, ValueError, AttributeError) as err:
+        if split is not None and not isinstance(split, str):
+            raise ValueError(f"its split is {split!r}, not a path")
+        _, splits = split_trials(None if split is None else _small_file(split, "its split file"))
+    except (OSError, ValueError, AttributeError, UnicodeDecodeError) as err:
         raise ValueError(f"--runs {run}: cannot read its command.json's split ({err}).") from None
     if sorted(splits.get("val", [])) != sorted(held):
         raise ValueError(f"--runs {run}: trained with held-out trials {splits.get('val')}, not "
