@@ -13,6 +13,9 @@ import yaml
 
 from manifold_nets_examples.broad import crossval
 from manifold_nets_examples.broad import train as train_cmd
+from manifold_nets_examples.broad.data import read_trial
+from manifold_nets_examples.broad.metric import rmse
+from manifold_nets_examples.broad.seeds import ensemble
 from tests.broad_checks import FIXTURE
 
 
@@ -49,9 +52,19 @@ def test_each_trial_is_scored_by_the_run_that_did_not_train_on_it(folds):
     out = tmp / "table"
     crossval.main(["--out", str(out), "--folds", f"{f1},{f2}",
                    "--runs", f"c={tmp / 'r1_s0'},{tmp / 'r2_s0'}",
-                   "--runs", f"c={tmp / 'r1_s1'},{tmp / 'r2_s1'}"])  # fmt: skip
+                   "--runs", f"c={tmp / 'r1_s1'},{tmp / 'r2_s1'}", "--ensemble"])  # fmt: skip
     got = json.loads((out / "metrics.json").read_text())
-    assert got["chosen"] == "c" and set(got["rows"]) == {"vqf", "c"}
+    assert got["chosen"] == "c" and set(got["rows"]) == {"vqf", "c", "c (ensemble of 2)"}
+    # the ensemble row: each trial's two seeds (their stored estimates) averaged, then scored
+    ens = got["rows"]["c (ensemble of 2)"]
+    for k, name in ((1, "a"), (2, "b")):
+        qs = []
+        for seed in (0, 1):
+            with np.load(tmp / f"r{k}_s{seed}" / "results" / "learned_val_quaternions.npz") as z:
+                qs.append(z[name])
+        trial = read_trial(tmp / "mat" / f"{name}.mat")
+        want = rmse(ensemble(qs), trial.quat, trial.movement)["total"]
+        assert math.isclose(ens["trials"][name], want, rel_tol=1e-12)
     row = got["rows"]["c"]
     # each seed's figure: the mean over both folds of what train stored for its held-out trial
     for seed, figures in enumerate(row["per_seed"]):

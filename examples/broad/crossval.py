@@ -17,7 +17,8 @@ held-out trials must not overlap. Each run's estimates of its held-out trials (s
 benchmark's metric; a seed's cross-validated figure is the mean over every held-out trial, and a
 configuration's row the mean and sample standard deviation of its seeds' figures, each fold's
 mean and each trial's total (means over the seeds). VQF (default settings) on the same trials
-for reference. The configuration with the lowest mean total is marked: the selection rule.
+for reference; ``--ensemble`` adds each configuration's seed ensemble. The configuration (not
+an ensemble) with the lowest mean total is marked: the selection rule.
 Writes ``table.md`` and ``metrics.json``; data: BROAD, CC-BY-4.0 (Laidig et al. 2021).
 """
 
@@ -37,7 +38,7 @@ from manifold_nets.threads import use_threads
 from .compare import ATTRIBUTION, METRICS
 from .data import read_trials, split_trials
 from .metric import rmse
-from .seeds import run_estimates
+from .seeds import ensemble, run_estimates
 
 __all__ = ["fold_trials", "check_run_fold", "cv_rows", "main"]
 
@@ -89,18 +90,21 @@ def check_run_fold(run: Path, held: list[str], fold: str) -> None:
                          f"fold {fold}'s {held}; give the runs in the order of --folds.")
 
 
-def cv_rows(trials: dict, held: list[list[str]], groups: dict) -> dict:
+def cv_rows(trials: dict, held: list[list[str]], groups: dict, with_ensemble: bool = False) -> dict:
     """``{label: {"seeds", "mean", "std", "per_seed", "folds", "trials"}}`` for ``groups``
-    ``{label: [[run of fold 1, run of fold 2, ...] for each seed]}``."""
+    ``{label: [[run of fold 1, run of fold 2, ...] for each seed]}``; ``with_ensemble`` adds,
+    for a configuration of several seeds, the row of its seeds' averaged estimate
+    (:func:`.seeds.ensemble`; each fold's seeds on the fold's trials), marked ``"ensemble"``."""
     rows = {}
     for label, seeds in groups.items():
-        per_seed = []
+        per_seed, estimates = [], {}
         for runs in seeds:
             scores = {}
             for run, names in zip(runs, held):
                 fold = [trials[n] for n in names]
                 for t, q in zip(fold, run_estimates(run, "val", fold)):
                     scores[t.name] = rmse(q, t.quat, t.movement)
+                    estimates.setdefault(t.name, []).append(q)
             per_seed.append(scores)
         figures = [{m: float(np.mean([s[n][m] for n in s])) for m in METRICS} for s in per_seed]
         rows[label] = {
@@ -114,6 +118,15 @@ def cv_rows(trials: dict, held: list[list[str]], groups: dict) -> dict:
             "trials": {n: float(np.mean([s[n]["total"] for s in per_seed]))
                        for names in held for n in names},  # fmt: skip
         }
+        if with_ensemble and len(seeds) > 1:
+            per = {n: rmse(ensemble(qs), trials[n].quat, trials[n].movement)
+                   for n, qs in estimates.items()}  # fmt: skip
+            rows[f"{label} (ensemble of {len(seeds)})"] = {
+                "seeds": [[str(r) for r in runs] for runs in seeds], "std": None, "ensemble": True,
+                "mean": {m: float(np.mean([v[m] for v in per.values()])) for m in METRICS},
+                "folds": [float(np.mean([per[n]["total"] for n in names])) for names in held],
+                "trials": {n: v["total"] for n, v in per.items()},
+            }
     return rows
 
 
@@ -160,6 +173,8 @@ def main(argv=None) -> None:
     p.add_argument("--out", required=True)
     p.add_argument("--folds", required=True, help="the folds' split files, comma-separated")
     p.add_argument("--runs", action="append", default=[], metavar="LABEL=RUN,RUN,...")
+    p.add_argument("--ensemble", action="store_true",
+                   help="add each configuration's seed ensemble (not among the rule's choices)")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--threads", type=int, default=None)
     a = p.parse_args(argv)
@@ -175,8 +190,9 @@ def main(argv=None) -> None:
         out = check_destination(a.out, folder=True)
         names = [n for f in held for n in f]
         trials = {t.name: t for t in read_trials(a.data_dir or default_dir, names)}
-        rows = cv_rows(trials, held, groups)
-        chosen = min(rows, key=lambda k: rows[k]["mean"]["total"])
+        rows = cv_rows(trials, held, groups, a.ensemble)
+        single = [k for k in rows if not rows[k].get("ensemble")]  # the rule chooses among these
+        chosen = min(single, key=lambda k: rows[k]["mean"]["total"])
         from .reference import vqf_9d
 
         ordered = [trials[n] for n in names]
