@@ -124,7 +124,7 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
     tmp, f1, f2 = folds
     runs = (tmp / "r1_s0", tmp / "r2_tilt")
     observer = load_observer(runs[0]).observer
-    args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=",".join(map(str, runs)), window=16,
+    args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=[",".join(map(str, runs))], window=16,
                               data_dir=None)  # fmt: skip
     got = _cross_fitted(args, observer)
 
@@ -141,7 +141,10 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
     assert got.errors.shape[1] == 16 and got.known.sum() == sum(w.known.sum() for w in want)
     # fold 2's errors are its own run's, not fold 1's run's on the same trial
     assert not torch.equal(through(runs[0], "b").errors, want[1].errors)
-    swapped = argparse.Namespace(**{**vars(args), "cv_runs": f"{runs[1]},{runs[0]}"})
+    twice = _cross_fitted(argparse.Namespace(**{**vars(args), "cv_runs": args.cv_runs * 2}),
+                          observer)  # fmt: skip
+    assert torch.equal(twice.errors, torch.cat([got.errors, got.errors]))
+    swapped = argparse.Namespace(**{**vars(args), "cv_runs": [f"{runs[1]},{runs[0]}"]})
     with pytest.raises(SystemExit, match="in the order of --folds"):
         _cross_fitted(swapped, observer)
 

@@ -13,8 +13,8 @@ the training trials (``--fit val``: the validation trials, which the observer wa
 cut into windows of ``--window`` observer steps; the reference's unknown samples left out), the
 one of lowest NLL on the other split is kept. ``--fit cv`` fits a ``readings`` readout to
 errors no observer made on its own training trials: each cross-validation fold's run
-(``--cv-runs``, one per ``--folds`` split file, as ``broad.crossval`` takes them) on that
-fold's held-out trials, every training and validation trial once; the readings do not depend on
+(``--cv-runs``, one per ``--folds`` split file, as ``broad.crossval`` takes them; repeated
+for more seeds) on that fold's held-out trials, every training and validation trial once a seed; the readings do not depend on
 the observer, so the readout then serves ``--observer`` (the run of fold 1 when that is the
 fixed split's); with no trial left to choose an epoch on, the epoch of lowest NLL on the fitted
 errors is kept. On the test
@@ -96,13 +96,14 @@ def _cross_fitted(args, observer) -> Sequences:
     from .crossval import check_run_fold, fold_trials
 
     folds = [f for f in args.folds.split(",") if f]
-    runs = [Path(r) for r in args.cv_runs.split(",") if r]
+    sets = [[Path(r) for r in item.split(",") if r] for item in args.cv_runs]
     try:
         data_dir, held = fold_trials(folds)
-        if len(runs) != len(folds):
-            raise ValueError(f"--cv-runs: one run per fold ({len(folds)}), got {len(runs)}.")
+        if any(len(runs) != len(folds) for runs in sets):
+            raise ValueError(f"--cv-runs: one run per fold ({len(folds)}) each time, got "
+                             f"{[len(runs) for runs in sets]}.")
         parts = []
-        for run, names, fold in zip(runs, held, folds):
+        for run, names, fold in ((r, n, f) for runs in sets for r, n, f in zip(runs, held, folds)):
             check_run_fold(run, names, fold)
             obs, system, _ = load_observer(run)
             if input_width(obs, "readings") != input_width(observer, "readings"):
@@ -129,8 +130,9 @@ def main(argv=None) -> None:
                    help="the trials the readout is fitted to (the other split picks the source); "
                         "cv: each fold's held-out trials as its run estimates them")
     p.add_argument("--folds", default=None, help="--fit cv: the folds' split files, comma-separated")
-    p.add_argument("--cv-runs", default=None,
-                   help="--fit cv: one run folder per fold, comma-separated, in --folds' order")
+    p.add_argument("--cv-runs", action="append", default=[],
+                   help="--fit cv: one run folder per fold, comma-separated, in --folds' order; "
+                        "again for another seed's runs (their errors are all fitted)")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
