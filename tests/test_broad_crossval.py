@@ -95,8 +95,19 @@ def test_runs_out_of_fold_order_overlapping_folds_and_leaks_are_refused(folds):
     with pytest.raises(SystemExit, match="no such run"):
         crossval.main(["--out", out, "--folds", f"{f1},{f2}",
                        "--runs", f"c={tmp / 'r1_s0'},{tmp / 'nowhere'}"])  # fmt: skip
+    # the run records the trials it read: its fold is known wherever the split file went
+    moved = tmp / "moved"
+    shutil.copytree(tmp / "r2_s0", moved)
+    assert yaml.safe_load((moved / "split.yaml").read_text())["splits"]["val"] == ["b"]
+    (moved / "command.json").write_text(json.dumps({"split": str(tmp / "gone.yaml")}))
+    crossval.check_run_fold(moved, ["b"], f2)
+    with pytest.raises(ValueError, match="in the order of --folds"):
+        crossval.check_run_fold(moved, ["a"], f1)
+    # a run without split.yaml (made before it was recorded) is checked by its command.json
     hostile = tmp / "hostile"
     shutil.copytree(tmp / "r2_s0", hostile)
+    (hostile / "split.yaml").unlink()
+    crossval.check_run_fold(hostile, ["b"], f2)
     (hostile / "command.json").write_text(json.dumps({"split": "/dev/zero"}))
     with pytest.raises(SystemExit, match="/dev/zero is not a file"):
         crossval.main(["--out", out, "--folds", f"{f1},{f2}",

@@ -10,9 +10,10 @@ without the test split::
 ``--folds`` names the folds' split files (``configs/broad/cv/``: each fold's ``val`` is its
 held-out trials, ``train`` the others). Each ``--runs LABEL=RUN,...`` is one seed of a
 configuration: its runs in the order of ``--folds``, the k-th trained (``broad.train --split``)
-on fold k; a label given again adds a seed. A run's ``command.json`` must name a split file whose
-``val`` is its fold's (so a run cannot be scored on trials it trained on), and the folds'
-held-out trials must not overlap. Each run's estimates of its held-out trials (stored by
+on fold k; a label given again adds a seed. A run's split (``split.yaml``, which ``broad.train``
+records; in a run without it, the split file its ``command.json`` names, relative to the working
+directory) must have its fold's ``val`` (so a run cannot be scored on trials it trained on), and
+the folds' held-out trials must not overlap. Each run's estimates of its held-out trials (stored by
 ``broad.train`` in ``results/learned_val_quaternions.npz``, else estimated) are scored by the
 benchmark's metric; a seed's cross-validated figure is the mean over every held-out trial, and a
 configuration's row the mean and sample standard deviation of its seeds' figures, each fold's
@@ -29,6 +30,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import yaml
 
 from manifold_nets.atomic import write_text_atomic
 from manifold_nets.destination import check_destination
@@ -76,15 +78,20 @@ def _small_file(path, what: str) -> Path:
 
 def check_run_fold(run: Path, held: list[str], fold: str) -> None:
     """Raises ``ValueError`` unless ``run`` was trained with a split whose held-out trials are
-    ``held`` (its ``command.json``; no split there: the default trials.yaml)."""
+    ``held``: the trials ``broad.train`` recorded (``split.yaml``), or for a run without that
+    file the split file its ``command.json`` names (relative to the working directory; none: the
+    default trials.yaml)."""
     try:
-        command = json.loads(_small_file(run / "command.json", "the run's").read_text())
-        split = command.get("split") if isinstance(command, dict) else None
-        if split is not None and not isinstance(split, str):
-            raise ValueError(f"its split is {split!r}, not a path")
-        _, splits = split_trials(None if split is None else _small_file(split, "its split file"))
-    except (OSError, ValueError, AttributeError, UnicodeDecodeError) as err:
-        raise ValueError(f"--runs {run}: cannot read its command.json's split ({err}).") from None
+        if (Path(run) / "split.yaml").exists():
+            _, splits = split_trials(_small_file(Path(run) / "split.yaml", "the run's"))
+        else:
+            command = json.loads(_small_file(run / "command.json", "the run's").read_text())
+            split = command.get("split") if isinstance(command, dict) else None
+            if split is not None and not isinstance(split, str):
+                raise ValueError(f"its split is {split!r}, not a path")
+            _, splits = split_trials(None if split is None else _small_file(split, "its split file"))
+    except (OSError, ValueError, AttributeError, UnicodeDecodeError, yaml.YAMLError) as err:
+        raise ValueError(f"--runs {run}: cannot read the split it was trained with ({err}).") from None
     if sorted(splits.get("val", [])) != sorted(held):
         raise ValueError(f"--runs {run}: trained with held-out trials {splits.get('val')}, not "
                          f"fold {fold}'s {held}; give the runs in the order of --folds.")

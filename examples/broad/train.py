@@ -282,7 +282,7 @@ def prepare(args) -> dict:
             init = {"model": model.state_dict(), "signature": model.signature(), "epoch": 0}
     return {
         "out": out, "system": system, "model": model, "model_cfg": model_cfg,
-        "windows": windows(args, trials) if stages else None, "init": init,
+        "windows": windows(args, trials) if stages else None, "init": init, "split": split,
     }
 
 
@@ -294,6 +294,8 @@ def run(args) -> Path:
     config = _config(args, system, ready["model_cfg"])
     write_text_atomic(out / "config.yaml", yaml.safe_dump(config, sort_keys=False))
     write_text_atomic(out / "command.json", json.dumps(vars(args), indent=1) + "\n")
+    # the trials of each split as this run read them (broad.crossval checks a run's fold by them)
+    write_text_atomic(out / "split.yaml", yaml.safe_dump({"splits": ready["split"]}, sort_keys=False))
     best = ready["init"]
     if args.pretrain_sequences > 0 and args.pretrain_epochs > 0:
         best = pretrain(args, system, model, out, config)
