@@ -30,6 +30,7 @@ import torch  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from manifold_nets.atomic import write_text_atomic  # noqa: E402
+from manifold_nets_examples.broad.compare import ATTRIBUTION  # noqa: E402
 from manifold_nets_examples.broad.data import read_trials, split_trials  # noqa: E402
 from manifold_nets_examples.broad.evaluate import observer_quaternions  # noqa: E402
 from manifold_nets_examples.broad.learning import make_observer, model_config  # noqa: E402
@@ -82,8 +83,7 @@ def table(result: list[dict], split: str, tau_c: float) -> str:
     for r in result:
         lines.append(f"| {r['gain']:g} | {r['inclination']:.3f} | "
                      + " | ".join(f"{v:.2f}" for v in r["trials"].values()) + " |")
-    lines += ["", "Data: BROAD (D. Laidig, M. Caruso, A. Cereatti, T. Seel, Data 6(7):72, 2021, "
-              "https://doi.org/10.3390/data6070072), CC-BY-4.0."]
+    lines += ["", ATTRIBUTION]
     return "\n".join(lines) + "\n"
 
 

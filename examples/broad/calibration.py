@@ -14,10 +14,10 @@ cut into windows of ``--window`` observer steps; the reference's unknown samples
 one of lowest NLL on the other split is kept. ``--fit cv`` fits a ``readings`` readout to
 errors no observer made on its own training trials: each cross-validation fold's run
 (``--cv-runs``, one per ``--folds`` split file, as ``broad.crossval`` takes them; repeated
-for more seeds) on that fold's held-out trials, every training and validation trial once a seed; the readings do not depend on
-the observer, so the readout then serves ``--observer`` (the run of fold 1 when that is the
-fixed split's); with no trial left to choose an epoch on, the epoch of lowest NLL on the fitted
-errors is kept. On the test
+for more seeds) on that fold's held-out trials, every training and validation trial once a
+seed; the readings do not depend on the observer, so the readout then serves ``--observer``
+(the run of fold 1 when that is the fixed split's); with no trial left to choose an epoch on,
+the epoch of lowest NLL on the fitted errors is kept. On the test
 trials (never used to fit or choose) each trial's time-averaged NEES / 3 and the share of its
 errors inside the 1, 2 and 3 sigma ellipsoids (Gaussian: 19.9 / 73.9 / 97.1 %) are reported, at
 the observer's steps where the reference is known and the IMU moves (the benchmark's samples).
@@ -140,19 +140,19 @@ def main(argv=None) -> None:
     if args.fit == "cv" and (args.sources != ["readings"] or not args.folds or not args.cv_runs):
         raise SystemExit("error: --fit cv takes --sources readings (each fold's observer has a "
                          "hidden state of its own), --folds and --cv-runs.")
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     data_dir, split = split_trials(None)
     data_dir = args.data_dir or data_dir
     observer, system, _ = load_observer(args.observer)
     start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
-    data = {
-        "train": _decimated(read_trials(data_dir, split["train"]), system),
-        "val": _decimated(read_trials(data_dir, split["val"]), system),
-    }
+    if args.fit == "cv":  # the training and validation trials come through the folds' runs
+        cv = _cross_fitted(args, observer)
+    else:
+        cv, data = None, {s: _decimated(read_trials(data_dir, split[s]), system)
+                          for s in ("train", "val")}  # fmt: skip
     test_trials = read_trials(data_dir, split["test"])
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
     fits, best = {}, None
-    cv = _cross_fitted(args, observer) if args.fit == "cv" else None
     for source in args.sources:
         other = "val" if args.fit == "train" else "train"
         if cv is not None:
