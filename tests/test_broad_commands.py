@@ -393,6 +393,10 @@ def test_train_copies_best_pt_atomically(tmp_path, monkeypatch):
     (["--mounting", "7"], "--mounting must be an angle in [0, pi] radians"),
     (["--tilt-tau", "-1"], "--tilt-tau must be a finite number >= 0 (seconds; 0: no tilt"),
     (["--heading-only", "1"], "--heading-only 1 leaves the tilt to --tilt-tau's correction"),
+    (["--heading-tau", "inf"], "--heading-tau must be a finite number >= 0 (seconds; 0: no"),
+    (["--heading-gate", "1"], "--heading-gate 1 gates the heading correction, and --heading-tau"),
+    (["--heading-tau", "9", "--magnetometer", "0"], "--heading-tau corrects the heading from the "
+     "magnetometer, and --magnetometer is 0"),
     (["--lr", "nan"], "--lr must be a finite number > 0, got nan."),
     (["--pretrain-sequences", "1"], "--pretrain-sequences must be 0 (no pre-training) or >= 2"),
     (["--window", "1000", "--decimation", "8"], "--window 1000 x --decimation 8 = 8000 samples: "

@@ -264,6 +264,49 @@ def test_a_run_from_an_observer_without_the_tilt_correction_adds_it(six_d_runs, 
     assert tilts[1] == pytest.approx(t, abs=1e-9)
 
 
+def test_a_run_with_the_gated_heading_correction_turns_only_the_heading(six_d_runs):
+    """``--heading-tau`` (and ``--heading-gate 1``) from an observer without it: the weights
+    carry over, the prior is the heading correction after the tilt correction, gated by the
+    system's field; held still with a heading error and the field undisturbed, the estimate's
+    heading error shrinks by ``(dt / tau) sin`` of itself and its tilt stays; with the field 30 %
+    too strong nothing turns it."""
+    from manifold_nets import load_observer
+    from manifold_nets_examples.broad.learning import field_gate
+
+    tmp, split = six_d_runs
+    train_cmd.main(["--split", str(split), "--out", str(tmp / "r9h"), "--init-from",
+                    str(tmp / "r9"), "--hidden-size", "8", "--num-layers", "1", "--decimation",
+                    "4", "--pretrain-epochs", "0", "--finetune-epochs", "0", "--tilt-tau", "0.5",
+                    "--heading-tau", "0.25", "--heading-gate", "1", "--heading-only", "1",
+                    "--eval-splits", "test"])  # fmt: skip
+    old, _, _ = load_observer(tmp / "r9")
+    new, system, _ = load_observer(tmp / "r9h")
+    prior = new.signature()["prior"]
+    assert (prior["vector"], prior["tau"], prior["about"]) == ([3, 6], 0.25, [0.0, 0.0, 1.0])
+    assert prior["gate"] == field_gate(system) and prior["inner"]["tau"] == 0.5
+    for (k, a), b in zip(old.state_dict().items(), new.state_dict().values()):
+        assert torch.equal(a, b), k
+    new = new.double()
+    new.core.head.weight.data.zero_()  # the priors alone (the core's heading-only turn is its own)
+    new.core.head.bias.data.zero_()
+    dip = math.radians(system.magnetic_dip_deg)
+    strength = system.magnetic_strength / 44.0
+    e, steps = 0.3, 30
+    for scale, turned in ((1.0, True), (1.3, False)):
+        y = torch.zeros(1, steps, 6, dtype=torch.float64)
+        y[..., 2] = 1.0
+        y[..., 4], y[..., 5] = scale * strength * math.cos(dip), -scale * strength * math.sin(dip)
+        start = new.init_state(1)._replace(
+            estimate=SO3().exp(torch.tensor([[0.0, 0.0, e]], dtype=torch.float64)))
+        with torch.no_grad():
+            R = new(y, torch.zeros(1, steps, 3, dtype=torch.float64), start)[0, -1]
+        assert R[2, 2] == pytest.approx(1.0, abs=1e-12)  # no tilt
+        t = e
+        for _ in range(steps if turned else 0):
+            t -= system.dt / 0.25 * math.sin(t)
+        assert math.atan2(R[1, 0], R[0, 0]) == pytest.approx(t, abs=1e-9)
+
+
 def test_the_six_d_command_writes_the_rows_and_the_cascade(six_d_runs):
     pytest.importorskip("vqf")
     tmp, split = six_d_runs

@@ -150,8 +150,8 @@ def test_signature_build_and_widening_from_the_inner_prior(tmp_path):
         (lambda: ComplementaryPrior("R", (0, 3), TAU, DT, reference=(0, 1)),
          r"reference must be 3 finite numbers"),
         (lambda: ComplementaryPrior("R", 3, TAU, DT), r"vector\['v'\] must be \(start, stop\)"),
-        (lambda: ComplementaryPrior("R", (0, 3), TAU, DT, inner=ComplementaryPrior(
-            "R", (0, 3), TAU, DT)), "inner must be another kind of prior"),
+        (lambda: ComplementaryPrior("R", (0, 3), TAU, DT, inner="kinematic"),
+         "inner must be a prior"),
         (lambda: observer(ComplementaryPrior("b", (0, 3), TAU, DT)),
          r"factor 'b' is Euclidean\(3\); it corrects an SO\(3\) factor"),
         (lambda: observer(ComplementaryPrior("q", (0, 3), TAU, DT)), "names a factor 'q'"),

@@ -21,6 +21,11 @@ re-learn integration to 1e-4 rad per step:
 * optionally (``--heading-only 1``) the projection scale ``{type: projection, factors: {x:
   [[0, 0, 1]]}}``: the world-frame correction is a turn about "up", so the network moves the
   heading only and the tilt is the complementary prior's;
+* optionally (``--heading-tau 10``) a second complementary prior after those, turning about
+  "up" only towards magnetic north, ``{type: complementary, factor: x, vector: [3, 6], tau:
+  10.0, reference: [0, 1, 0], about: [0, 0, 1], inner: ...}``, a heading correction that cannot
+  tilt the estimate; ``--heading-gate 1`` gates it on the field's strength and dip
+  (:func:`field_gate`), so a nearby magnet does not turn it;
 * an output scale, ``scales: [{type: output, scale: 0.01}]``: corrections are ~1e-3 rad per
   step, so the head's output is scaled down (the optimiser's steps on its weights stay in
   proportion);
@@ -46,6 +51,7 @@ from manifold_nets.config import ModelConfig
 from manifold_nets.data import TrajectoryDataset
 from manifold_nets.observer import ObserverState, ResidualObserver
 
+from .data import M0
 from .simulator import BroadSimulator
 
 __all__ = [
@@ -66,16 +72,23 @@ _SO3 = SO3()
 
 def model_config(
     hidden_size: int = 64, num_layers: int = 2, output_scale: float = 0.01, tilt_tau: float = 0.0,
-    heading_only: bool = False,
+    heading_only: bool = False, heading_tau: float = 0.0, heading_gate: dict | None = None,
 ) -> ModelConfig:
     """The BROAD observer's model config (see the module docstring); ``tilt_tau > 0`` (seconds)
     adds the complementary prior's tilt correction towards the accelerometer after the
     gyroscope's step; ``heading_only`` projects the core's correction onto "up" (a turn about
-    the vertical: it moves the heading only)."""
+    the vertical: it moves the heading only); ``heading_tau > 0`` (seconds) adds, after those,
+    the complementary prior's heading correction towards magnetic north (a turn about "up"),
+    ``heading_gate`` its gate (:func:`field_gate`)."""
     prior = {"type": "kinematic", "velocities": {"x": [6, 9]}}  # the gyroscope, integrated
     if tilt_tau > 0:
         prior = {"type": "complementary", "factor": "x", "vector": [0, 3], "tau": tilt_tau,
                  "inner": prior}  # fmt: skip
+    if heading_tau > 0:
+        prior = {"type": "complementary", "factor": "x", "vector": [3, 6], "tau": heading_tau,
+                 "reference": [0.0, 1.0, 0.0], "about": [0.0, 0.0, 1.0], "inner": prior}
+        if heading_gate is not None:
+            prior["gate"] = dict(heading_gate)
     return ModelConfig(
         hidden_size=hidden_size,
         num_layers=num_layers,
@@ -87,6 +100,14 @@ def model_config(
         scales=([{"type": "projection", "factors": {"x": [[0.0, 0.0, 1.0]]}}] if heading_only
                 else []) + [{"type": "output", "scale": output_scale}],
     )
+
+
+def field_gate(system: BroadSimulator, norm_tol: float = 0.1, dip_tol: float = 10.0) -> dict:
+    """The heading correction's gate: the magnetometer trusted where its field strength is within
+    ``norm_tol`` of the system's and its dip within ``dip_tol`` degrees (VQF's default
+    thresholds), in the observer's units (``mag / M0``)."""
+    return {"norm": system.magnetic_strength / M0, "norm_tol": norm_tol,
+            "elevation": -system.magnetic_dip_deg, "elevation_tol": dip_tol}
 
 
 def make_observer(system: BroadSimulator, model: ModelConfig, seed: int = 0) -> ResidualObserver:

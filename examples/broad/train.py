@@ -55,6 +55,7 @@ from .evaluate import check_scored, chosen_splits, evaluate_run
 from .learning import (
     RandomHeading,
     RandomMounting,
+    field_gate,
     make_observer,
     model_config,
     near_truth_start,
@@ -101,6 +102,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--heading-only", type=int, choices=(0, 1), default=0,
                    help="1: the network's correction turns the estimate about 'up' only (the "
                         "tilt is left to --tilt-tau's correction)")
+    p.add_argument("--heading-tau", type=float, default=0.0,
+                   help="seconds: the complementary prior's heading correction towards magnetic "
+                        "north (a turn about 'up' only), after the tilt correction; 0: none")
+    p.add_argument("--heading-gate", type=int, choices=(0, 1), default=0,
+                   help="1: the heading correction only where the magnetometer's strength and "
+                        "dip are within 10 %% and 10 deg of the system's (learning.field_gate)")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--start-std", type=float, default=0.05,
@@ -146,6 +153,15 @@ def check_args(args) -> None:
         raise ValueError("--heading-only 1 leaves the tilt to --tilt-tau's correction, and "
                          "--tilt-tau is 0: nothing would correct the tilt; give --tilt-tau "
                          "(seconds, e.g. 3) or drop --heading-only.")
+    if not (math.isfinite(args.heading_tau) and args.heading_tau >= 0):
+        raise bad("--heading-tau", "a finite number >= 0 (seconds; 0: no heading correction)",
+                  args.heading_tau)
+    if args.heading_tau > 0 and not args.magnetometer:
+        raise ValueError("--heading-tau corrects the heading from the magnetometer, and "
+                         "--magnetometer is 0: drop --heading-tau for a 6-D observer.")
+    if args.heading_gate and not args.heading_tau > 0:
+        raise ValueError("--heading-gate 1 gates the heading correction, and --heading-tau is 0: "
+                         "give --heading-tau (seconds, e.g. 10) or drop --heading-gate.")
     if not (math.isfinite(args.start_std) and args.start_std >= 0):
         raise bad("--start-std", "a finite number >= 0 (radians)", args.start_std)
     if not 0 <= args.mounting <= math.pi:
@@ -268,7 +284,8 @@ def prepare(args) -> dict:
         dt=args.decimation * BROAD_DT, magnetometer=bool(args.magnetometer),
         acc_lowpass=args.acc_lowpass, rest_bias=bool(args.rest_bias))
     model_cfg = model_config(args.hidden_size, args.num_layers, args.output_scale, args.tilt_tau,
-                             bool(args.heading_only))
+                             bool(args.heading_only), args.heading_tau,
+                             field_gate(system) if args.heading_gate else None)
     model = make_observer(system, model_cfg, args.seed)
     for epochs in (args.pretrain_epochs, args.finetune_epochs):
         check_settings(settings(args, epochs))

@@ -186,6 +186,15 @@ class ComplementaryPrior(Prior):
     misses (linear acceleration, the heading, the rest). A zero ``v`` (a zeroed sensor) corrects
     nothing.
 
+    With ``about`` (a world-frame axis ``a``) it turns about ``a`` only, towards ``r``'s part
+    normal to ``a``, from ``R^- v``'s part normal to ``a``: with ``a`` "up" and ``v`` a
+    magnetometer, a correction of the heading that cannot tilt the estimate (VQF's separation of
+    the two). With ``gate`` it corrects only at steps where ``v`` looks like its undisturbed self:
+    ``| |v| / norm - 1 | <= norm_tol`` and, with ``about``, the elevation of ``R^- v`` above the
+    plane normal to ``a`` within ``elevation_tol`` degrees of ``elevation`` (a magnetometer's
+    field strength and dip: a nearby magnet changes them, the estimate's heading does not).
+    Priors of this kind nest (a heading correction after a tilt correction).
+
     Args:
         factor: the SO(3) factor it corrects.
         vector: ``(start, stop)``, the 3 entries of ``(y, u)`` holding ``v`` (low-passed
@@ -193,32 +202,65 @@ class ComplementaryPrior(Prior):
         tau: the time constant in seconds (> 0); dt: the step length in seconds (> 0; a builder
             gives the system's); reference: ``r`` (any non-zero length; default up, ``(0, 0, 1)``).
         inner: the prior it follows (default none; a kinematic prior integrates the gyroscope).
+        about: ``a`` (any non-zero length) or ``None`` (default: turn about any axis).
+        gate: ``None`` (default: correct at every step) or a mapping with ``norm`` (> 0, the
+            units of ``v``), ``norm_tol`` (a fraction, > 0), and with ``about`` optionally
+            ``elevation`` and ``elevation_tol`` (degrees; a magnetometer in the north's
+            East-North-Up frame: elevation = minus the dip).
     """
 
     name = "complementary"
+    _GATE_KEYS = ("norm", "norm_tol", "elevation", "elevation_tol")
 
     def __init__(self, factor: str, vector, tau: float, dt: float, reference=(0.0, 0.0, 1.0),
-                 inner: Prior | None = None):
+                 inner: Prior | None = None, about=None, gate=None):
         super().__init__()
         self.factor = str(factor)
         self.vector = check_spans("complementary prior: vector", {"v": vector}, "(y, u)")["v"]
         self.tau = check_number("complementary prior: tau", tau, 1e-9, 1e9, " (seconds)")
         self.dt = check_number("complementary prior: dt", dt, 1e-12, 1e6, " (seconds)")
-        try:
-            ref = [float(c) for c in reference]
-        except (TypeError, ValueError):
-            ref = []
-        norm = sum(c * c for c in ref) ** 0.5
-        if len(ref) != 3 or not 0 < norm < float("inf"):
-            raise ValueError(f"complementary prior: reference must be 3 finite numbers, not all "
-                             f"zero (a direction; up is [0, 0, 1]), got {reference!r}.")
-        self.reference = ref
-        self.register_buffer("_r", torch.tensor([c / norm for c in ref], dtype=torch.float64),
-                             persistent=False)
+        self.reference = _direction("reference", reference, "up is [0, 0, 1]")
+        self.register_buffer("_r", _unit(self.reference), persistent=False)
+        self.about = None if about is None else _direction("about", about, "up is [0, 0, 1]")
+        if self.about is not None:  # r's part normal to a: both in the plane, w along a
+            self.register_buffer("_a", _unit(self.about), persistent=False)
+            r = self._r - (self._r @ self._a) * self._a
+            if float(r.norm()) < 1e-6:
+                raise ValueError("complementary prior: reference is along about; a turn about "
+                                 "it cannot move anything towards it (a heading correction's "
+                                 "reference is horizontal: north is [0, 1, 0]).")
+            self._r = r / r.norm()
+        self.gate = self._check_gate(gate)
         self.inner = NoPrior() if inner is None else inner
-        if not isinstance(self.inner, Prior) or isinstance(self.inner, ComplementaryPrior):
-            raise ValueError("complementary prior: inner must be another kind of prior (none, "
-                             "system, robust_system, kinematic).")
+        if not isinstance(self.inner, Prior):
+            raise ValueError("complementary prior: inner must be a prior (none, system, "
+                             "robust_system, kinematic, complementary).")
+
+    def _check_gate(self, gate) -> dict | None:
+        if gate is None:
+            return None
+        if not hasattr(gate, "items") or set(gate) - set(self._GATE_KEYS):
+            raise ValueError(f"complementary prior: gate must be a mapping of {self._GATE_KEYS}, "
+                             f"got {gate!r}.")
+        g = dict(gate)
+        if "norm" not in g or "norm_tol" not in g:
+            raise ValueError("complementary prior: gate needs norm and norm_tol (e.g. {norm: "
+                             f"44.0, norm_tol: 0.1}} for a magnetometer in uT), got {gate!r}.")
+        out = {"norm": check_number("complementary prior: gate.norm", g["norm"], 1e-12, 1e12),
+               "norm_tol": check_number("complementary prior: gate.norm_tol", g["norm_tol"],
+                                        1e-12, 1e12, " (a fraction of norm)")}
+        if ("elevation" in g) != ("elevation_tol" in g):
+            raise ValueError("complementary prior: gate's elevation and elevation_tol go "
+                             f"together, got {gate!r}.")
+        if "elevation" in g:
+            if self.about is None:
+                raise ValueError("complementary prior: gate.elevation is measured from the plane "
+                                 "normal to about; give about (up: [0, 0, 1]).")
+            out["elevation"] = check_number("complementary prior: gate.elevation",
+                                            g["elevation"], -90.0, 90.0, " (degrees)")
+            out["elevation_tol"] = check_number("complementary prior: gate.elevation_tol",
+                                                g["elevation_tol"], 0.0, 180.0, " (degrees)")
+        return out
 
     def bind(self, group, measurement):
         self.inner.bind(group, measurement)
@@ -237,6 +279,10 @@ class ComplementaryPrior(Prior):
     def settings(self):
         out = {"factor": self.factor, "vector": list(self.vector), "tau": self.tau, "dt": self.dt,
                "reference": self.reference}
+        if self.about is not None:
+            out["about"] = self.about
+        if self.gate is not None:
+            out["gate"] = dict(self.gate)
         if not isinstance(self.inner, NoPrior):
             out["inner"] = self.inner.signature()
         return out
@@ -249,9 +295,47 @@ class ComplementaryPrior(Prior):
     def forward(self, x, yu, ys):
         x = self.inner(x, yu, ys)
         R = x[:, self._slice].unflatten(-1, (3, 3))
-        v = (R @ ys[:, self.vector[0] : self.vector[1], None].to(x.dtype))[..., 0]
-        n = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
-        w = torch.linalg.cross(v / n.clamp_min(1e-30), self._r.to(x).expand_as(v))
+        body = ys[:, self.vector[0] : self.vector[1]].to(x.dtype)
+        v = (R @ body[..., None])[..., 0]
+        if self.about is None:
+            n = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+            w = torch.linalg.cross(v / n.clamp_min(1e-30), self._r.to(x).expand_as(v))
+        else:
+            a = self._a.to(x)
+            along = v @ a
+            h = v - along[:, None] * a
+            n = torch.linalg.vector_norm(h, dim=-1, keepdim=True)
+            w = torch.linalg.cross(h / n.clamp_min(1e-30), self._r.to(x).expand_as(h))
+        if self.gate is not None:
+            w = w * self._open(body, v).to(x)[:, None]
         x = x.clone()  # R stays a view of the inner prior's output, which autograd needs
         x[:, self._slice] = (self._so3.exp(w * (self.dt / self.tau)) @ R).flatten(-2)
         return x
+
+    def _open(self, body, v):
+        """Where the gate lets the correction through: ``(B,)`` booleans."""
+        g = self.gate
+        norm = torch.linalg.vector_norm(body, dim=-1)
+        ok = (norm / g["norm"] - 1).abs() <= g["norm_tol"]
+        if "elevation" in g:
+            sine = (v @ self._a.to(v)) / norm.clamp_min(1e-30)
+            elevation = torch.rad2deg(torch.asin(sine.clamp(-1.0, 1.0)))
+            ok = ok & ((elevation - g["elevation"]).abs() <= g["elevation_tol"])
+        return ok
+
+
+def _direction(what: str, value, example: str) -> list[float]:
+    try:
+        out = [float(c) for c in value]
+    except (TypeError, ValueError):
+        out = []
+    norm = sum(c * c for c in out) ** 0.5
+    if len(out) != 3 or not 0 < norm < float("inf"):
+        raise ValueError(f"complementary prior: {what} must be 3 finite numbers, not all zero (a "
+                         f"direction; {example}), got {value!r}.")
+    return out
+
+
+def _unit(direction: list[float]) -> torch.Tensor:
+    norm = sum(c * c for c in direction) ** 0.5
+    return torch.tensor([c / norm for c in direction], dtype=torch.float64)

@@ -70,7 +70,7 @@ def _unwrapped(sig: dict | None, wrapper: str, default: str) -> str:
     """A piece's type less a weightless wrapper around an inner piece (a head's centring, a
     prior's complementary correction); ``default`` where there is none."""
     sig = sig or {"type": default}
-    if sig.get("type") == wrapper:
+    while sig.get("type") == wrapper:  # complementary priors nest
         sig = sig.get("inner", {"type": default})
     return sig.get("type", default)
 
