@@ -14,7 +14,7 @@ starts before any training: the gyroscope integrated at 35.7 Hz (less its bias f
 tilt correction towards the accelerometer low-passed over 1 s, then the heading correction
 towards the magnetometer's horizontal part (gated: only where its strength and dip are within
 10 % and 10 deg of the system's, ``learning.field_gate``). The first row (tau 0) corrects no
-heading. Every trial of the split from TRIAD of its first sample, scored by the benchmark's
+heading; the last is VQF's (9-D, default settings) on the same trials. Every trial of the split from TRIAD of its first sample, scored by the benchmark's
 metric; the heading is the column to read.
 """
 
@@ -36,6 +36,20 @@ from manifold_nets_examples.broad.evaluate import observer_quaternions  # noqa: 
 from manifold_nets_examples.broad.learning import field_gate, make_observer, model_config  # noqa: E402
 from manifold_nets_examples.broad.metric import rmse  # noqa: E402
 from manifold_nets_examples.broad.simulator import BROAD_DT, BroadSimulator  # noqa: E402
+
+
+def vqf_row(trials) -> dict | None:
+    """VQF (9-D, online, default settings) on the same trials, when the ``vqf`` package is there."""
+    try:
+        from manifold_nets_examples.broad.reference import vqf_9d
+
+        quats = vqf_9d(trials)
+    except ImportError:
+        return None
+    per = [rmse(q, t.quat, t.movement & t.known) for q, t in zip(quats, trials)]
+    return {"tau": "VQF", "gate": None,
+            **{k: float(np.mean([p[k] for p in per])) for k in ("total", "heading", "inclination")},
+            "trials": {t.name[:2]: p["heading"] for t, p in zip(trials, per)}}
 
 
 def rows(trials, taus, tilt_tau: float) -> list[dict]:
@@ -67,7 +81,9 @@ def table(result: list[dict], split: str, tilt_tau: float) -> str:
              "| heading tau (s) | gated | heading | total | inclination | " + " | ".join(names)
              + " |", "|---" * (5 + len(names)) + "|"]
     for r in result:
-        lines.append(f"| {r['tau']:g} | {'yes' if r['gate'] else 'no'} | {r['heading']:.3f} | "
+        tau, gate = (r["tau"], "") if r["gate"] is None else (f"{r['tau']:g}", "yes" if r["gate"]
+                                                               else "no")  # fmt: skip
+        lines.append(f"| {tau} | {gate} | {r['heading']:.3f} | "
                      f"{r['total']:.2f} | {r['inclination']:.2f} | "
                      + " | ".join(f"{v:.2f}" for v in r["trials"].values()) + " |")
     lines += ["", ATTRIBUTION]
@@ -87,6 +103,7 @@ def main(argv=None) -> None:
     trials = read_trials(a.data_dir or data_dir, split[a.split])
     t0 = time.perf_counter()
     result = rows(trials, [float(t) for t in a.taus.split(",")], a.tilt_tau)
+    result += [r for r in [vqf_row(trials)] if r is not None]
     text = table(result, a.split, a.tilt_tau)
     print(text + f"\n({time.perf_counter() - t0:.0f} s)")
     if a.write:
