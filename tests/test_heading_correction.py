@@ -148,3 +148,37 @@ def test_bad_settings_say_what_is_wrong(kw, message):
     args = {"reference": (0.0, 1.0, 0.0), "about": (0, 0, 1), **kw}
     with pytest.raises(ValueError, match=message):
         ComplementaryPrior("R", (3, 6), TAU, DT, **args)
+
+
+def test_rollout_online_step_and_exported_step_agree_with_the_gate_opening_and_closing(tmp_path):
+    """The nested, gated prior in every code path: the rollout, ``step`` and the exported step
+    (``torch.export``) give the same estimates over readings whose field is disturbed at every
+    third step, so the gate opens and closes within one sequence."""
+    from manifold_nets import export_observer
+    from manifold_nets.deploy import load_exported_step
+
+    tilt = ComplementaryPrior("R", (0, 3), TAU, DT, inner=KinematicPrior({"R": (6, 9)}, DT))
+    obs = observer(heading(0.2, GATE, tilt), seed=1)
+    g = torch.Generator().manual_seed(6)
+    n, t = 3, 24
+    truth = SO3().random((n,), generator=g, dtype=torch.float64)
+    ys = torch.stack([readings(truth, FIELD * (1.4 if k % 3 == 0 else 1.0), g=g)
+                      for k in range(t)], 1)  # fmt: skip
+    ys[..., 6:] *= 0.1
+    y, u = ys[..., :6], ys[..., 6:]
+    start = obs.init_state(n)._replace(estimate=states(yaw(torch.full((n,), 0.5)) @ truth))
+    with torch.no_grad():
+        est = obs(y, u, start)
+        state = start
+        for k in range(t):
+            state = obs.step(state, y[:, k], u[:, k])
+            torch.testing.assert_close(state.estimate, est[:, k + 1], rtol=0, atol=1e-12)
+    strength = y[..., 3:6].norm(dim=-1) / GATE["norm"]  # 1.4 at every third step: closed there
+    assert ((strength - 1).abs() > GATE["norm_tol"]).sum() == n * (t // 3)
+    export_observer(obs, tmp_path / "step.pt2")
+    step = load_exported_step(tmp_path / "step.pt2")
+    x, *hidden = step.initial_state(n)
+    x = start.estimate.reshape(n, -1)
+    for k in range(t):
+        x, *hidden = step(x, *hidden, y[:, k], u[:, k].to(obs.net_dtype))
+        torch.testing.assert_close(x, est[:, k + 1].flatten(1), rtol=0, atol=1e-10)

@@ -193,6 +193,15 @@ COMBOS = {
         features=[Embedding(), Readings(), Innovation()], head=PlainHead(),
         scales=[Projection({"x": [[0.0, 0.0, 1.0], [1.0, 1.0, 0.0]]}), OutputScale(0.5)],
     )),
+    "so3_heading_gated_after_tilt": (lambda: Spinner(SO3(), as_input=True), lambda s: dict(
+        measurement=Measurement(9, 3, {"x": (0, 9)}), update=GroupUpdate({"x": "left"}),
+        prior=ComplementaryPrior(
+            "x", (0, 3), 0.5, s.dt, reference=(0.0, 1.0, 0.0), about=(0.0, 0.0, 1.0),
+            gate={"norm": 1.0, "norm_tol": 0.3, "elevation": 0.0, "elevation_tol": 30.0},
+            inner=ComplementaryPrior("x", (3, 6), 0.5, s.dt,
+                                     inner=KinematicPrior({"x": (9, 12)}, s.dt))),
+        features=[Embedding(), Readings()], head=PlainHead(), scales=[OutputScale(0.5)],
+    )),
     "se3_kinematic_left": (lambda: Spinner(SE3(), as_input=True), lambda s: dict(
         measurement=Measurement(12, 6, {"x": (0, 12)}),
         prior=KinematicPrior({"x": (12, 18)}, s.dt), update=GroupUpdate({"x": "left"}),
