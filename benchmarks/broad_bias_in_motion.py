@@ -27,14 +27,13 @@ os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from broad_scores import scores, split_of  # noqa: E402
 from scipy.spatial.transform import Rotation  # noqa: E402
 
 from manifold_nets.atomic import write_text_atomic  # noqa: E402
 from manifold_nets_examples.broad.compare import ATTRIBUTION  # noqa: E402
-from manifold_nets_examples.broad.data import read_trials, split_trials  # noqa: E402
 from manifold_nets_examples.broad.evaluate import observer_quaternions  # noqa: E402
 from manifold_nets_examples.broad.learning import make_observer, model_config  # noqa: E402
-from manifold_nets_examples.broad.metric import rmse  # noqa: E402
 from manifold_nets_examples.broad.prefilter import prefiltered  # noqa: E402
 from manifold_nets_examples.broad.simulator import BROAD_DT, BroadSimulator  # noqa: E402
 
@@ -67,9 +66,7 @@ def rows(trials, gains, tau_c: float) -> list[dict]:
                for t, p in zip(trials, pre)]  # fmt: skip
         with torch.no_grad():
             quats = observer_quaternions(observer, system, fed)
-        inc = [rmse(q, t.quat, t.movement & t.known)["inclination"] for q, t in zip(quats, fed)]
-        out.append({"gain": gain, "inclination": float(np.mean(inc)),
-                    "trials": {t.name[:2]: v for t, v in zip(trials, inc)}})  # fmt: skip
+        out.append({"gain": gain, **scores(quats, fed, "inclination")})
     return out
 
 
@@ -96,8 +93,7 @@ def main(argv=None) -> None:
     p.add_argument("--write", default=None, help="a markdown file for the table")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    data_dir, split = split_trials(None)
-    trials = read_trials(a.data_dir or data_dir, split[a.split])
+    trials = split_of(a.split, a.data_dir)
     t0 = time.perf_counter()
     text = table(rows(trials, [float(g) for g in a.gains.split(",")], a.tau_c), a.split, a.tau_c)
     text += f"\nCommand: `python benchmarks/broad_bias_in_motion.py --split {a.split} --gains " \

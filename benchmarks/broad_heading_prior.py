@@ -26,15 +26,13 @@ import time
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from broad_scores import scores, split_of  # noqa: E402
 
 from manifold_nets.atomic import write_text_atomic  # noqa: E402
 from manifold_nets_examples.broad.compare import ATTRIBUTION  # noqa: E402
-from manifold_nets_examples.broad.data import read_trials, split_trials  # noqa: E402
 from manifold_nets_examples.broad.evaluate import observer_quaternions  # noqa: E402
 from manifold_nets_examples.broad.learning import field_gate, make_observer, model_config  # noqa: E402
-from manifold_nets_examples.broad.metric import rmse  # noqa: E402
 from manifold_nets_examples.broad.simulator import BROAD_DT, BroadSimulator  # noqa: E402
 
 
@@ -46,10 +44,7 @@ def vqf_row(trials) -> dict | None:
         quats = vqf_9d(trials)
     except ImportError:
         return None
-    per = [rmse(q, t.quat, t.movement & t.known) for q, t in zip(quats, trials)]
-    return {"tau": "VQF", "gate": None,
-            **{k: float(np.mean([p[k] for p in per])) for k in ("total", "heading", "inclination")},
-            "trials": {t.name[:2]: p["heading"] for t, p in zip(trials, per)}}
+    return {"tau": "VQF", "gate": None, **scores(quats, trials, "heading")}
 
 
 def rows(trials, taus, tilt_tau: float) -> list[dict]:
@@ -63,11 +58,7 @@ def rows(trials, taus, tilt_tau: float) -> list[dict]:
         assert not observer.core.head.weight.any()  # the core says nothing: the priors alone
         with torch.no_grad():
             quats = observer_quaternions(observer, system, trials)
-        per = [rmse(q, t.quat, t.movement & t.known) for q, t in zip(quats, trials)]
-        out.append({"tau": tau, "gate": gate,
-                    **{k: float(np.mean([p[k] for p in per]))
-                       for k in ("total", "heading", "inclination")},
-                    "trials": {t.name[:2]: p["heading"] for t, p in zip(trials, per)}})
+        out.append({"tau": tau, "gate": gate, **scores(quats, trials, "heading")})
         print(f"tau {tau:g} gate {gate}: heading {out[-1]['heading']:.3f}", flush=True)
     return out
 
@@ -99,8 +90,7 @@ def main(argv=None) -> None:
     p.add_argument("--write", default=None, help="a markdown file for the table")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    data_dir, split = split_trials(None)
-    trials = read_trials(a.data_dir or data_dir, split[a.split])
+    trials = split_of(a.split, a.data_dir)
     t0 = time.perf_counter()
     result = rows(trials, [float(t) for t in a.taus.split(",")], a.tilt_tau)
     result += [r for r in [vqf_row(trials)] if r is not None]

@@ -23,15 +23,13 @@ import time
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
-import numpy as np  # noqa: E402
 import torch  # noqa: E402
+from broad_scores import scores, split_of  # noqa: E402
 
 from manifold_nets.atomic import write_text_atomic  # noqa: E402
 from manifold_nets_examples.broad.compare import ATTRIBUTION  # noqa: E402
-from manifold_nets_examples.broad.data import read_trials, split_trials  # noqa: E402
 from manifold_nets_examples.broad.evaluate import observer_quaternions  # noqa: E402
 from manifold_nets_examples.broad.learning import make_observer, model_config  # noqa: E402
-from manifold_nets_examples.broad.metric import rmse  # noqa: E402
 from manifold_nets_examples.broad.simulator import BROAD_DT, BroadSimulator  # noqa: E402
 
 
@@ -43,10 +41,7 @@ def rows(trials, taus, lowpass: float) -> list[dict]:
         assert not observer.core.head.weight.any()  # the core says nothing: the prior alone
         with torch.no_grad():
             quats = observer_quaternions(observer, system, trials)
-        per = [rmse(q, t.quat, t.movement & t.known) for q, t in zip(quats, trials)]
-        out.append({"tau": tau, **{k: float(np.mean([p[k] for p in per]))
-                                   for k in ("total", "heading", "inclination")},
-                    "trials": {t.name[:2]: p["inclination"] for t, p in zip(trials, per)}})
+        out.append({"tau": tau, **scores(quats, trials, "inclination")})
     return out
 
 
@@ -74,8 +69,7 @@ def main(argv=None) -> None:
     p.add_argument("--write", default=None, help="a markdown file for the table")
     a = p.parse_args(argv)
     torch.set_num_threads(1)
-    data_dir, split = split_trials(None)
-    trials = read_trials(a.data_dir or data_dir, split[a.split])
+    trials = split_of(a.split, a.data_dir)
     t0 = time.perf_counter()
     text = table(rows(trials, [float(t) for t in a.taus.split(",")], a.lowpass), a.split, a.lowpass)
     print(text + f"\n({time.perf_counter() - t0:.0f} s)")
