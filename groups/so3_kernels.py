@@ -158,7 +158,10 @@ class Inputs:
     """A Function's inputs kept for a second derivative only (:func:`recorded_grad`), with their
     versions: the first-order backward saves just what it reads (as autograd through the formula
     would), so an input modified in place afterwards is refused only if a second derivative
-    needs it, with autograd's own message."""
+    needs it, with autograd's own message. The context holds them as plain attributes: a caller
+    that writes in place into a tensor after handing a view of it to one of these Functions
+    makes a reference cycle through the C++ graph that no garbage collector frees (assemble the
+    result out of place instead; ``tests/test_graph_release.py``)."""
 
     def __init__(self, *tensors: torch.Tensor):
         self.tensors = tensors

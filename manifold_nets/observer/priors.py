@@ -163,16 +163,22 @@ class KinematicPrior(Prior):
         return {"velocities": {k: list(v) for k, v in self.velocities.items()}, "dt": self.dt}
 
     def forward(self, x, yu, ys):
-        x = x.clone()
+        # assembled out of place: writing into x after handing a view of it to an SO(3) kernel
+        # would tie the step's graph into a cycle no garbage collector frees
+        # (tests/test_graph_release.py)
+        moved = {}
         for f, xs, cols in self._moves:
             w = yu[:, cols].to(x.dtype) * self.dt
-            shape = f.element_shape
             if isinstance(f, Euclidean):
-                x[:, xs] = x[:, xs] + w
+                moved[xs.start] = (xs.stop, x[:, xs] + w)
             else:
-                new = f.rplus(x[:, xs].unflatten(-1, shape), w)
-                x[:, xs] = new.flatten(-len(shape)) if len(shape) > 1 else new
-        return x
+                moved[xs.start] = (xs.stop, f.rplus(x[:, xs].unflatten(-1, f.element_shape), w))
+        pieces, at = [], 0
+        for start in sorted(moved):
+            stop, new = moved[start]
+            pieces += [x[:, at:start], new.flatten(1)]
+            at = stop
+        return torch.cat([*pieces, x[:, at:]], dim=1)
 
 
 class ComplementaryPrior(Prior):
