@@ -33,7 +33,7 @@ from groups import LieGroup
 
 __all__ = [
     "SIGMAS", "FactorCalibration", "tangent_errors", "nees", "calibration", "gaussian_share",
-    "anees_band",
+    "anees_band", "conformal_scale",
 ]
 
 #: The ellipsoids whose shares are reported (in standard deviations).
@@ -75,6 +75,25 @@ def gaussian_share(sigma: float, dim: int) -> float:
     """The probability that a ``dim``-dimensional Gaussian error lies inside its ``sigma``-sigma
     ellipsoid, ``chi2.cdf(sigma^2, dim)``."""
     return float(chi2.cdf(sigma**2, dim))
+
+
+def conformal_scale(nees_values: torch.Tensor, dim: int, sigma: float = 3.0) -> float:
+    """The scale ``s`` of a covariance that puts the Gaussian share ``chi2.cdf(sigma^2, dim)``
+    of held-out errors inside the ``sigma``-sigma ellipsoid: ``s = q_(k) / sigma^2`` with
+    ``q_(k)`` the ``k = ceil((n + 1) share)``-th smallest of the ``n`` NEES values (split
+    conformal calibration: a fresh error exchangeable with them has ``NEES <= s sigma^2`` with
+    probability at least ``share``, whatever the errors' law). ``nees_values`` 1-D, finite."""
+    q = torch.as_tensor(nees_values, dtype=torch.float64).flatten()
+    if q.numel() == 0 or not bool(torch.isfinite(q).all()) or bool((q < 0).any()):
+        raise ValueError(f"conformal_scale: expected finite non-negative NEES values, got "
+                         f"{q.numel()} value(s) with min {q.min() if q.numel() else None}.")
+    share = gaussian_share(sigma, dim)
+    k = min(q.numel(), int(np.ceil((q.numel() + 1) * share)))
+    scale = float(torch.sort(q).values[k - 1]) / sigma**2
+    if not scale > 0:
+        raise ValueError("conformal_scale: the held-out errors are zero at the quantile; there "
+                         "is nothing to scale to (give errors of an estimator that errs).")
+    return scale
 
 
 @dataclass(frozen=True)

@@ -28,6 +28,7 @@ from .training_losses import initial_state
 
 __all__ = [
     "Sequences", "readout_sequences", "fit_covariance", "mean_nll", "factor_nees", "scale_to_heldout",
+    "step_nees", "scale_to_share",
 ]
 
 
@@ -188,6 +189,46 @@ def scale_to_heldout(readout: CovarianceReadout, heldout: Sequences) -> dict[str
     if readout.structure == "joint":
         mean = sum(scales.values()) / len(scales)
         scales = dict.fromkeys(scales, mean)
+    readout.rescale(scales)
+    return scales
+
+
+@torch.no_grad()
+def step_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int = 200) -> dict:
+    """Per factor ``f``: ``xi_f^T P_f^-1 xi_f`` at each of ``seqs``' known steps (1-D float64;
+    a ``"joint"`` readout also gives ``"joint"``, the whole error's)."""
+    from .calibration import nees
+
+    group, out = readout.group, {name: [] for name in readout.group.factor_names}
+    if readout.structure == "joint":
+        out["joint"] = []
+    for s in range(0, len(seqs), batch_size):
+        part = seqs.select(torch.arange(s, min(len(seqs), s + batch_size)))
+        cov = CovarianceReadout.covariance(readout.log_scale(part.features, part.starts)[0])
+        for name in out:
+            sl = slice(None) if name == "joint" else group.tangent_slice(name)
+            out[name].append(nees(part.errors[..., sl], cov[..., sl, sl])[part.known])
+    return {name: torch.cat(q) for name, q in out.items()}
+
+
+def scale_to_share(readout: CovarianceReadout, heldout, sigma: float = 3.0) -> dict[str, float]:
+    """Scales each factor's block of ``P`` so that the Gaussian share of ``heldout``'s errors
+    lies inside its ``sigma``-sigma ellipsoid (97.1 % at 3 sigma for a 3-D error):
+    :func:`~manifold_nets.calibration.conformal_scale` of their NEES. Where the errors have
+    heavier tails than a Gaussian, the 1 and 2 sigma shares come out above theirs: it holds
+    the share at ``sigma``, not the shape. ``heldout``: :class:`Sequences` neither fitted nor
+    used to pick the epoch, or the NEES values per factor (:func:`step_nees` of other
+    readouts, e.g. cross-fitted). A ``"joint"`` readout takes one scale from the whole
+    error. Returns the scales applied."""
+    from .calibration import conformal_scale
+
+    q = step_nees(readout, heldout) if isinstance(heldout, Sequences) else dict(heldout)
+    if readout.structure == "joint":
+        scale = conformal_scale(q["joint"], readout.n, sigma)
+        scales = dict.fromkeys(readout.group.factor_names, scale)
+    else:
+        scales = {name: conformal_scale(q[name], readout.group.factor(name).tangent_dim, sigma)
+                  for name in readout.group.factor_names}
     readout.rescale(scales)
     return scales
 

@@ -127,7 +127,7 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
     import torch
 
     from manifold_nets import load_observer
-    from manifold_nets.covariance_training import readout_sequences
+    from manifold_nets.covariance_training import Sequences, readout_sequences
     from manifold_nets_examples.broad.calibration import _cross_fitted, _decimated, _windows
     from manifold_nets_examples.broad.data import read_trials
     from manifold_nets_examples.broad.learning import measured_start
@@ -137,7 +137,9 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
     observer = load_observer(runs[0]).observer
     args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=[",".join(map(str, runs))], window=16,
                               data_dir=None)  # fmt: skip
-    got = _cross_fitted(args, observer)
+    parts = _cross_fitted(args, observer)
+    assert [k for k, _ in parts] == [0, 1]
+    got = Sequences.cat([seqs for _, seqs in parts])
 
     def through(run, name):
         obs, system, _ = load_observer(run)
@@ -154,10 +156,39 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
     assert not torch.equal(through(runs[0], "b").errors, want[1].errors)
     twice = _cross_fitted(argparse.Namespace(**{**vars(args), "cv_runs": args.cv_runs * 2}),
                           observer)  # fmt: skip
-    assert torch.equal(twice.errors, torch.cat([got.errors, got.errors]))
+    assert [k for k, _ in twice] == [0, 1, 0, 1]  # in --cv-runs' order, as fitted
+    assert torch.equal(Sequences.cat([s for _, s in twice]).errors, torch.cat([got.errors] * 2))
     swapped = argparse.Namespace(**{**vars(args), "cv_runs": [f"{runs[1]},{runs[0]}"]})
     with pytest.raises(SystemExit, match="in the order of --folds"):
         _cross_fitted(swapped, observer)
+
+
+def test_the_cross_conformal_scale_reads_each_folds_errors_under_a_readout_fitted_without_them(
+    folds,
+):
+    import argparse
+
+    import torch
+
+    from manifold_nets import load_observer
+    from manifold_nets.covariance_training import Sequences, step_nees
+    from manifold_nets_examples.broad.calibration import _cross_conformal, _cross_fitted, _fit
+
+    tmp, f1, f2 = folds
+    runs = (tmp / "r1_s0", tmp / "r2_tilt")
+    observer = load_observer(runs[0]).observer
+    args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=[",".join(map(str, runs))] * 2,
+                              window=16, data_dir=None, epochs=2, seed=5)  # fmt: skip
+    parts = _cross_fitted(args, observer)
+    got = _cross_conformal(parts, observer, args)
+    torch.manual_seed(123)  # the fits seed themselves: the global state does not matter
+    want = []
+    for k in (0, 1):  # by hand: fitted to the other fold's errors (both seeds'), read on fold k
+        rest = Sequences.cat([s for j, s in parts if j != k])
+        readout, _ = _fit(rest, rest, observer, "readings", args)
+        want.append(step_nees(readout, Sequences.cat([s for j, s in parts if j == k]))["x"])
+    assert set(got) == {"x"} and torch.equal(got["x"], torch.cat(want))
+    assert len(got["x"]) == int(Sequences.cat([s for _, s in parts]).known.sum())
 
 
 def test_the_cross_fitted_calibration_refuses_a_hidden_state_source(tmp_path):

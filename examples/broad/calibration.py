@@ -17,7 +17,11 @@ errors no observer made on its own training trials: each cross-validation fold's
 for more seeds) on that fold's held-out trials, every training and validation trial once a
 seed; the readings do not depend on the observer, so the readout then serves ``--observer``
 (the run of fold 1 when that is the fixed split's); with no trial left to choose an epoch on,
-the epoch of lowest NLL on the fitted errors is kept. On the test
+the epoch of lowest NLL on the fitted errors is kept. ``--conformal 1`` then scales the
+readout so that held-out errors fall inside its 3-sigma ellipsoid at the Gaussian share
+(:func:`manifold_nets.covariance_training.scale_to_share`): the other split's errors, or with
+``--fit cv`` each fold's errors under a readout fitted to the other folds' (cross-conformal).
+On the test
 trials (never used to fit or choose) each trial's time-averaged NEES / 3 and the share of its
 errors inside the 1, 2 and 3 sigma ellipsoids (Gaussian: 19.9 / 73.9 / 97.1 %) are reported, at
 the observer's steps where the reference is known and the IMU moves (the benchmark's samples).
@@ -43,6 +47,8 @@ from manifold_nets.covariance_training import (
     mean_nll,
     readout_sequences,
     save_readout,
+    scale_to_share,
+    step_nees,
 )
 from manifold_nets.observer import CalibratedObserver, CovarianceReadout, ObserverState
 from manifold_nets.observer.covariance import input_width
@@ -91,9 +97,10 @@ def _windows(seqs: Sequences, window: int) -> Sequences:
     return out.select(keep.nonzero().squeeze(-1))
 
 
-def _cross_fitted(args, observer) -> Sequences:
-    """``--fit cv``'s sequences: each fold's run on the fold's held-out trials (``readings``)."""
-    from .crossval import check_run_fold, fold_trials
+def _cross_fitted(args, observer) -> list[tuple[int, Sequences]]:
+    """``--fit cv``'s sequences: each fold's run on the fold's held-out trials (``readings``),
+    every seed's, as ``(fold index, sequences)`` in ``--cv-runs``' order."""
+    from .crossval import fold_trials
 
     folds = [f for f in args.folds.split(",") if f]
     sets = [[Path(r) for r in item.split(",") if r] for item in args.cv_runs]
@@ -102,24 +109,28 @@ def _cross_fitted(args, observer) -> Sequences:
         if any(len(runs) != len(folds) for runs in sets):
             raise ValueError(f"--cv-runs: one run per fold ({len(folds)}) each time, got "
                              f"{[len(runs) for runs in sets]}.")
-        parts = []
-        for run, names, fold in ((r, n, f) for runs in sets for r, n, f in zip(runs, held, folds)):
-            check_run_fold(run, names, fold)
-            obs, system, _ = load_observer(run)
-            if input_width(obs, "readings") != input_width(observer, "readings"):
-                raise ValueError(f"--cv-runs {run}: reads {input_width(obs, 'readings')} numbers "
-                                 f"a step, --observer {input_width(observer, 'readings')}.")
-            start = measured_start(system) if input_settings(system)["magnetometer"] \
-                else tilt_start(system)  # fmt: skip
-            data = _decimated(read_trials(args.data_dir or data_dir, names), system)
-            seqs = readout_sequences(obs, data, "readings", skip=1, start=start)
-            parts.append(_windows(seqs, args.window))  # (the folds' trials differ in length)
+        return [(k, _fold_sequences(args, observer, run, names, fold, data_dir))
+                for runs in sets for k, (run, names, fold) in enumerate(zip(runs, held, folds))]
     except (ValueError, OSError) as err:
         raise SystemExit(f"error: {err}") from None
-    return Sequences.cat(parts)
 
 
-def main(argv=None) -> None:
+def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
+    """One fold's run on its held-out trials, in windows (the folds' trials differ in length)."""
+    from .crossval import check_run_fold
+
+    check_run_fold(run, names, fold)
+    obs, system, _ = load_observer(run)
+    if input_width(obs, "readings") != input_width(observer, "readings"):
+        raise ValueError(f"--cv-runs {run}: reads {input_width(obs, 'readings')} numbers "
+                         f"a step, --observer {input_width(observer, 'readings')}.")
+    start = measured_start(system) if input_settings(system)["magnetometer"] \
+        else tilt_start(system)  # fmt: skip
+    data = _decimated(read_trials(args.data_dir or data_dir, names), system)
+    return _windows(readout_sequences(obs, data, "readings", skip=1, start=start), args.window)
+
+
+def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True)
     p.add_argument("--observer", default="zoo:broad/attitude")
@@ -133,9 +144,39 @@ def main(argv=None) -> None:
     p.add_argument("--cv-runs", action="append", default=[],
                    help="--fit cv: one run folder per fold, comma-separated, in --folds' order; "
                         "again for another seed's runs (their errors are all fitted)")
+    p.add_argument("--conformal", type=int, choices=(0, 1), default=0,
+                   help="1: scale the readout so that held-out errors fall inside its 3-sigma "
+                        "ellipsoid at the Gaussian share, 97.1 %% (the other split's; with "
+                        "--fit cv each fold's errors under a readout fitted to the other folds')")
+    p.add_argument("--seed", type=int, default=0,
+                   help="the readouts' initial weights and batch order")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--threads", type=int, default=None)
-    args = p.parse_args(argv)
+    return p
+
+
+def _fit(train: Sequences, val: Sequences, observer, source: str, args):
+    torch.manual_seed(args.seed)  # the readout's initial weights (torch seeds itself at random)
+    readout = CovarianceReadout(observer.group, input_width(observer, source), "factor", 32, source)
+    history = fit_covariance(readout, _windows(train, args.window), val, epochs=args.epochs,
+                             lr=3e-3, batch_size=4, seed=args.seed)
+    return readout, history
+
+
+def _cross_conformal(parts, observer, args) -> dict:
+    """Each fold's errors' NEES under a readout fitted to the other folds' errors."""
+    q = {}
+    for k in sorted({k for k, _ in parts}):
+        rest = Sequences.cat([seqs for j, seqs in parts if j != k])
+        readout, _ = _fit(rest, rest, observer, "readings", args)
+        held = Sequences.cat([seqs for j, seqs in parts if j == k])
+        for name, values in step_nees(readout, held).items():
+            q.setdefault(name, []).append(values)
+    return {name: torch.cat(v) for name, v in q.items()}
+
+
+def main(argv=None) -> None:
+    args = _parser().parse_args(argv)
     use_threads(args.threads)
     if args.fit == "cv" and (args.sources != ["readings"] or not args.folds or not args.cv_runs):
         raise SystemExit("error: --fit cv takes --sources readings (each fold's observer has a "
@@ -145,14 +186,15 @@ def main(argv=None) -> None:
     observer, system, _ = load_observer(args.observer)
     start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
     if args.fit == "cv":  # the training and validation trials come through the folds' runs
-        cv = _cross_fitted(args, observer)
+        parts = _cross_fitted(args, observer)
+        cv = Sequences.cat([seqs for _, seqs in parts])
     else:
         cv, data = None, {s: _decimated(read_trials(data_dir, split[s]), system)
                           for s in ("train", "val")}  # fmt: skip
     test_trials = read_trials(data_dir, split["test"])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    fits, best = {}, None
+    fits, held, best = {}, {}, None
     for source in args.sources:
         other = "val" if args.fit == "train" else "train"
         if cv is not None:
@@ -160,16 +202,30 @@ def main(argv=None) -> None:
         else:
             train, val = (readout_sequences(observer, data[s], source, skip=1, start=start)
                           for s in (args.fit, other))
-        readout = CovarianceReadout(observer.group, input_width(observer, source), "factor", 32, source)
-        history = fit_covariance(readout, _windows(train, args.window), val, epochs=args.epochs,
-                                 lr=3e-3, batch_size=4)
-        fits[source] = {"val_nll": mean_nll(readout, val), "history": history}
+        readout, history = _fit(train, val, observer, source, args)
+        fits[source], held[source] = {"val_nll": mean_nll(readout, val), "history": history}, val
         print(source, "validation NLL", fits[source]["val_nll"], flush=True)
         if best is None or fits[source]["val_nll"] < fits[best[0]]["val_nll"]:
             best = (source, readout)
     source, readout = best
-    save_readout(out / "covariance.pt", readout, args.observer)
     test = _decimated(test_trials, system, moving=True)
+    result = {"observer": args.observer, "source": source, "fits": fits,
+              **_scored(observer, readout, test, test_trials, start)}
+    if args.conformal:
+        before = result
+        scales = scale_to_share(readout, _cross_conformal(parts, observer, args) if cv is not None
+                                else held[source])
+        result = {**before, "scales": scales, "unscaled": {"trials": before["trials"],
+                  "mean": before["mean"]}, **_scored(observer, readout, test, test_trials, start)}
+    save_readout(out / "covariance.pt", readout, args.observer)
+    write_text_atomic(out / "broad_calibration.json", json.dumps(result, indent=1))
+    text = _report(result, args, argv)
+    write_text_atomic(out / "broad_calibration.md", text)
+    print(text)
+
+
+def _scored(observer, readout, test, test_trials, start) -> dict:
+    """Each test trial's NEES / 3 and shares inside 1, 2, 3 sigma, and their means."""
     cal = CalibratedObserver(observer, readout).eval()
     state = ObserverState(start(test).to(observer.state_dtype), observer.core.initial_hidden(len(test)))
     with torch.no_grad():
@@ -183,22 +239,30 @@ def main(argv=None) -> None:
         rows[t.name] = {"nees/3": float(qi.mean() / 3), "steps": int(known.sum()),
                         **{f"in_{s}sigma": float((qi <= s * s).double().mean()) for s in SIGMAS}}
     mean = {k: float(np.mean([r[k] for r in rows.values()])) for k in next(iter(rows.values()))}
-    result = {"observer": args.observer, "source": source, "fits": fits, "trials": rows, "mean": mean,
-              "gaussian": {f"in_{s}sigma": gaussian_share(s, 3) for s in SIGMAS}}
-    write_text_atomic(out / "broad_calibration.json", json.dumps(result, indent=1))
+    return {"trials": rows, "mean": mean,
+            "gaussian": {f"in_{s}sigma": gaussian_share(s, 3) for s in SIGMAS}}
+
+
+def _report(result: dict, args, argv) -> str:
+    fits, source = result["fits"], result["source"]
     lines = ["# BROAD: calibration of the learned attitude covariance on the test trials", "",
              f"Observer `{args.observer}`, readout source `{source}` (validation NLL: " + ", ".join(
-                 f"{s} {f['val_nll']:.3f}" for s, f in fits.items()) + ").", "",
-             "| trial | steps | NEES / 3 | in 1 sigma | in 2 sigma | in 3 sigma |", "|---|---|---|---|---|---|"]
-    for name, r in [*rows.items(), ("mean over trials", mean)]:
+                 f"{s} {f['val_nll']:.3f}" for s, f in fits.items()) + ")."]
+    if "scales" in result:
+        lines += ["", "Scaled to hold the Gaussian 3-sigma share on held-out errors (conformal): "
+                  "P x " + ", ".join(f"{v:.3f} ({k})" for k, v in result["scales"].items()) + "."]
+    lines += ["", "| trial | steps | NEES / 3 | in 1 sigma | in 2 sigma | in 3 sigma |",
+              "|---|---|---|---|---|---|"]
+    rows = [*result["trials"].items(), ("mean over trials", result["mean"])]
+    if "unscaled" in result:
+        rows.append(("mean over trials, unscaled", result["unscaled"]["mean"]))
+    for name, r in rows:
         lines.append(f"| {name} | {r['steps']:.0f} | {r['nees/3']:.3f} | {100 * r['in_1sigma']:.1f} % | "
                      f"{100 * r['in_2sigma']:.1f} % | {100 * r['in_3sigma']:.1f} % |")
     lines += ["| Gaussian | | 1 | 19.9 % | 73.9 % | 97.1 % |", "",
               "Command: `python -m manifold_nets_examples.broad.calibration " + " ".join(
                   argv if argv is not None else sys.argv[1:]) + "`", ""]
-    write_text_atomic(out / "broad_calibration.md", "\n".join(lines))
-    print("\n".join(lines))
-
+    return "\n".join(lines)
 
 if __name__ == "__main__":
     main()
