@@ -68,6 +68,7 @@ def main() -> None:
     for name, (source, memory) in VARIANTS.items():
         t0 = time.perf_counter()
         width = train[source].features.shape[-1]
+        torch.manual_seed(0)  # the initial weights (torch seeds itself at random per process)
         readout = CovarianceReadout(observer.group, width, "factor", memory,
                                     "hidden" if source == "both" else source)
         history = fit_covariance(readout, train[source], val[source], epochs=args.epochs,
