@@ -197,4 +197,7 @@ def test_the_cross_fitted_calibration_refuses_a_hidden_state_source(tmp_path):
     with pytest.raises(SystemExit, match="--fit cv takes --sources readings"):
         calibration.main(["--fit", "cv", "--out", str(tmp_path / "c"), "--folds", "a.yaml",
                           "--cv-runs", "r"])  # fmt: skip
+    with pytest.raises(SystemExit, match="give two folds or more"):
+        calibration.main(["--fit", "cv", "--sources", "readings", "--conformal", "1", "--out",
+                          str(tmp_path / "c"), "--folds", "a.yaml", "--cv-runs", "r"])  # fmt: skip
     assert not (tmp_path / "c").exists()

@@ -181,6 +181,9 @@ def main(argv=None) -> None:
     if args.fit == "cv" and (args.sources != ["readings"] or not args.folds or not args.cv_runs):
         raise SystemExit("error: --fit cv takes --sources readings (each fold's observer has a "
                          "hidden state of its own), --folds and --cv-runs.")
+    if args.conformal and args.fit == "cv" and len([f for f in args.folds.split(",") if f]) < 2:
+        raise SystemExit("error: --conformal with --fit cv reads each fold's errors under a "
+                         "readout fitted to the other folds': give two folds or more.")
     data_dir, split = split_trials(None)
     data_dir = args.data_dir or data_dir
     observer, system, _ = load_observer(args.observer)
