@@ -86,7 +86,7 @@ def conformal_scale(nees_values: torch.Tensor, dim: int, sigma: float = 3.0) -> 
     q = torch.as_tensor(nees_values, dtype=torch.float64).flatten()
     if q.numel() == 0 or not bool(torch.isfinite(q).all()) or bool((q < 0).any()):
         raise ValueError(f"conformal_scale: expected finite non-negative NEES values, got "
-                         f"{q.numel()} value(s) with min {q.min() if q.numel() else None}.")
+                         f"{q.numel()} value(s) with min {float(q.min()) if q.numel() else None}.")
     share = gaussian_share(sigma, dim)
     k = min(q.numel(), int(np.ceil((q.numel() + 1) * share)))
     scale = float(torch.sort(q).values[k - 1]) / sigma**2

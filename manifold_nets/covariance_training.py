@@ -158,22 +158,33 @@ def fit_covariance(
     return history
 
 
+def _nees_names(readout: CovarianceReadout) -> list[str]:
+    return [*readout.group.factor_names, *(["joint"] if readout.structure == "joint" else [])]
+
+
+def _batch_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int):
+    """Per batch of ``seqs``: ``{factor (and "joint" for a joint readout): the NEES at the
+    batch's known steps}``."""
+    from .calibration import nees
+
+    group, names = readout.group, _nees_names(readout)
+    for s in range(0, len(seqs), batch_size):
+        part = seqs.select(torch.arange(s, min(len(seqs), s + batch_size)))
+        cov = CovarianceReadout.covariance(readout.log_scale(part.features, part.starts)[0])
+        slices = {name: slice(None) if name == "joint" else group.tangent_slice(name) for name in names}
+        yield {name: nees(part.errors[..., sl], cov[..., sl, sl])[part.known]
+               for name, sl in slices.items()}
+
+
 @torch.no_grad()
 def factor_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int = 200) -> dict[str, float]:
     """Per factor ``f`` of dimension ``d``: the mean of ``xi_f^T P_f^-1 xi_f / d`` over ``seqs``'
     known steps (1 when the readout is calibrated on them)."""
-    from .calibration import nees
-
     group, totals, count = readout.group, dict.fromkeys(readout.group.factor_names, 0.0), 0
-    for s in range(0, len(seqs), batch_size):
-        part = seqs.select(torch.arange(s, min(len(seqs), s + batch_size)))
-        chol, _ = readout.log_scale(part.features, part.starts)
-        cov = CovarianceReadout.covariance(chol)
+    for q in _batch_nees(readout, seqs, batch_size):
         for name in totals:
-            sl = group.tangent_slice(name)
-            q = nees(part.errors[..., sl], cov[..., sl, sl])[part.known]
-            totals[name] += float(q.sum()) / (sl.stop - sl.start)
-        count += int(part.known.sum())
+            totals[name] += float(q[name].sum()) / group.factor(name).tangent_dim
+        count += len(q[group.factor_names[0]])
     if not count:
         raise ValueError("the sequences have no known step to measure the readout on.")
     return {name: t / count for name, t in totals.items()}
@@ -197,18 +208,9 @@ def scale_to_heldout(readout: CovarianceReadout, heldout: Sequences) -> dict[str
 def step_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int = 200) -> dict:
     """Per factor ``f``: ``xi_f^T P_f^-1 xi_f`` at each of ``seqs``' known steps (1-D float64;
     a ``"joint"`` readout also gives ``"joint"``, the whole error's)."""
-    from .calibration import nees
-
-    group, out = readout.group, {name: [] for name in readout.group.factor_names}
-    if readout.structure == "joint":
-        out["joint"] = []
-    for s in range(0, len(seqs), batch_size):
-        part = seqs.select(torch.arange(s, min(len(seqs), s + batch_size)))
-        cov = CovarianceReadout.covariance(readout.log_scale(part.features, part.starts)[0])
-        for name in out:
-            sl = slice(None) if name == "joint" else group.tangent_slice(name)
-            out[name].append(nees(part.errors[..., sl], cov[..., sl, sl])[part.known])
-    return {name: torch.cat(q) for name, q in out.items()}
+    batches = list(_batch_nees(readout, seqs, batch_size))
+    return {name: torch.cat([q[name] for q in batches] or [torch.zeros(0, dtype=torch.float64)])
+            for name in _nees_names(readout)}
 
 
 def scale_to_share(readout: CovarianceReadout, heldout, sigma: float = 3.0) -> dict[str, float]:
