@@ -311,6 +311,7 @@ def test_scaling_to_held_out_sequences_makes_each_factor_s_mean_nees_one():
 
     gen = torch.Generator().manual_seed(3)
     r = CovarianceReadout(GROUP, 16, "factor", memory=4)
+    r.set_scale(torch.ones(6))  # P = I at every step, whatever the random initial weights
     errors = torch.randn(6, 20, 6, generator=gen, dtype=torch.float64) * torch.tensor([0.1] * 3 + [2.0] * 3).double()
     known = torch.ones(6, 20, dtype=torch.bool)
     known[:, :3] = False
