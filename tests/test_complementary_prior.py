@@ -56,25 +56,44 @@ def tilt_angle(R, acc):
     return torch.arccos((v @ UP) / v.norm(dim=-1))
 
 
-def test_the_correction_shrinks_the_tilt_by_dt_over_tau_of_its_sine():
+@pytest.mark.parametrize("tau", [TAU, DT])
+def test_the_correction_shrinks_the_tilt_by_dt_over_tau_of_its_sine(tau):
     """``R acc`` at angle ``t`` from up goes to ``t - (dt / tau) sin t`` (the rotation is about
-    ``R acc x up``), the heading about ``R acc`` is not what it moves, ``b`` stays."""
+    ``R acc x up``), the heading about ``R acc`` is not what it moves, ``b`` stays; also at the
+    shortest ``tau`` allowed, ``dt``."""
     g = torch.Generator().manual_seed(0)
     R = SO3().random((64,), generator=g, dtype=torch.float64)
     acc = torch.randn(64, 3, generator=g, dtype=torch.float64) * 3
     x = states(R)
     ys = torch.cat((acc, torch.randn(64, 6, generator=g, dtype=torch.float64)), -1)
-    out = prior(inner=False).bind(G, Measurement(6, 3).bind(G))(x, ys, ys)
+    out = prior(tau, inner=False).bind(G, Measurement(6, 3).bind(G))(x, ys, ys)
     R2 = out[:, :9].unflatten(-1, (3, 3))
     SO3().check_member(R2)
     t = tilt_angle(R, acc)
-    assert torch.allclose(tilt_angle(R2, acc), t - DT / TAU * torch.sin(t), atol=1e-12)
+    assert torch.allclose(tilt_angle(R2, acc), t - DT / tau * torch.sin(t), atol=1e-12)
     # the correction is a world-frame rotation about an axis perpendicular to up and R acc
     axis = SO3().log(R2 @ R.transpose(-1, -2))
     assert torch.allclose(axis @ UP, torch.zeros(64, dtype=torch.float64), atol=1e-12)
     assert torch.allclose((axis * (R @ acc[..., None])[..., 0]).sum(-1),
                           torch.zeros(64, dtype=torch.float64), atol=1e-12)  # fmt: skip
     assert torch.equal(out[:, 9:], x[:, 9:])
+
+
+def test_at_tau_equal_to_dt_a_small_tilt_is_gone_in_one_step():
+    """``tau = dt`` turns by ``sin t``: a tilt ``t`` of 1e-3 .. 3e-2 rad leaves ``t - sin t``
+    (below ``t^3 / 6``), whatever the heading."""
+    t = torch.tensor([1e-3, 1e-2, 3e-2], dtype=torch.float64)
+    axis = torch.stack((torch.cos(3 * t), torch.sin(3 * t), torch.zeros(3, dtype=torch.float64)), -1)
+    R = SO3().exp(axis * t[:, None]) @ SO3().exp(UP * torch.tensor([[0.3], [2.0], [-1.0]]))
+    acc = 9.81 * UP.expand(3, 3)
+    assert torch.allclose(tilt_angle(R, acc), t, atol=1e-12)
+    out = prior(DT, inner=False).bind(G, Measurement(6, 3).bind(G))(
+        states(R), torch.cat((acc, torch.ones(3, 6, dtype=torch.float64)), -1),
+        torch.cat((acc, torch.ones(3, 6, dtype=torch.float64)), -1))
+    v = (out[:, :9].unflatten(-1, (3, 3)) @ acc[..., None])[..., 0]
+    left = torch.atan2(torch.linalg.cross(v, UP.expand_as(v)).norm(dim=-1), v @ UP)  # exact near 0
+    assert (left <= t**3 / 6).all()
+    assert torch.allclose(left, t - torch.sin(t), atol=1e-15, rtol=1e-6)
 
 
 def test_aligned_or_zero_readings_leave_the_inner_prior_alone():
@@ -145,6 +164,9 @@ def test_signature_build_and_widening_from_the_inner_prior(tmp_path):
     "make, message",
     [
         (lambda: ComplementaryPrior("R", (0, 3), 0.0, DT), r"tau must be a number .*seconds"),
+        (lambda: ComplementaryPrior("R", (0, 3), 0.4 * DT, DT),
+         r"tau = 0.004 s is shorter than the step dt = 0.01 s, so each step would turn by "
+         r"dt / tau = 2.5 times the error .* give tau >= dt"),
         (lambda: ComplementaryPrior("R", (0, 3), TAU, DT, reference=(0, 0, 0)),
          r"reference must be 3 finite numbers, not all zero"),
         (lambda: ComplementaryPrior("R", (0, 3), TAU, DT, reference=(0, 1)),

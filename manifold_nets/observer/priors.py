@@ -205,8 +205,8 @@ class ComplementaryPrior(Prior):
         factor: the SO(3) factor it corrects.
         vector: ``(start, stop)``, the 3 entries of ``(y, u)`` holding ``v`` (low-passed
             readings make a better ``v``; the correction is only as good as its direction).
-        tau: the time constant in seconds (> 0); dt: the step length in seconds (> 0; a builder
-            gives the system's); reference: ``r`` (any non-zero length; default up, ``(0, 0, 1)``).
+        tau: the time constant in seconds (>= dt: a step turns ``dt / tau <= 1`` of the way);
+            dt: the step length in seconds (> 0; a builder gives the system's); reference: ``r`` (any non-zero length; default up, ``(0, 0, 1)``).
         inner: the prior it follows (default none; a kinematic prior integrates the gyroscope).
         about: ``a`` (any non-zero length) or ``None`` (default: turn about any axis).
         gate: ``None`` (default: correct at every step) or a mapping with ``norm`` (> 0, the
@@ -225,6 +225,13 @@ class ComplementaryPrior(Prior):
         self.vector = check_spans("complementary prior: vector", {"v": vector}, "(y, u)")["v"]
         self.tau = check_number("complementary prior: tau", tau, 1e-9, 1e9, " (seconds)")
         self.dt = check_number("complementary prior: dt", dt, 1e-12, 1e6, " (seconds)")
+        if self.tau < self.dt:
+            raise ValueError(
+                f"complementary prior: tau = {self.tau:g} s is shorter than the step dt = "
+                f"{self.dt:g} s, so each step would turn by dt / tau = {self.dt / self.tau:.3g} "
+                "times the error and overshoot (diverging beyond 2); give tau >= dt (tau = dt "
+                "corrects the whole error in one step)."
+            )
         self.reference = _direction("reference", reference, "up is [0, 0, 1]")
         self.register_buffer("_r", _unit(self.reference), persistent=False)
         self.about = None if about is None else _direction("about", about, "up is [0, 0, 1]")
