@@ -73,7 +73,8 @@ def learned_stream(run: str, x0=None):
     so3, k = SO3(), 8
     dt = system.dt / k
     inputs = input_settings(system)
-    pre = OnlinePrefilter(1 / dt, inputs.get("acc_lowpass", 0.0), inputs.get("rest_bias", False))
+    pre = OnlinePrefilter(1 / dt, inputs["acc_lowpass"], inputs["rest_bias"],
+                          order=inputs["acc_lowpass_order"])
     six = not inputs.get("magnetometer", True)
     st = {"n": 0, "block": np.eye(3), "state": None, "R": None}
 
@@ -124,7 +125,7 @@ def check(run: str, trial, n: int) -> float:
     from manifold_nets_examples.broad.learning import tilt
     from manifold_nets_examples.broad.prefilter import prefiltered
 
-    pre = prefiltered(part, inputs.get("acc_lowpass", 0.0), inputs.get("rest_bias", False))
+    pre = prefiltered(part, inputs["acc_lowpass"], inputs["rest_bias"], inputs["acc_lowpass_order"])
     y8 = torch.tensor(np.concatenate((pre.acc[8] / G0, part.mag[8] / M0)))[None]
     x0 = system.state_from_measurement(y8) if inputs.get("magnetometer", True) else tilt(
         y8[:, :3])

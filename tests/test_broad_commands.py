@@ -392,6 +392,9 @@ def test_train_copies_best_pt_atomically(tmp_path, monkeypatch):
     (["--stride", "0"], "--stride must be an integer >= 1, got 0."),
     (["--mounting", "7"], "--mounting must be an angle in [0, pi] radians"),
     (["--tilt-tau", "-1"], "--tilt-tau must be a finite number >= 0 (seconds; 0: no tilt"),
+    (["--tilt-tau", "0.01"], "tau = 0.01 s is shorter than the step dt = 0.028 s"),
+    (["--acc-lowpass-order", "2"], "--acc-lowpass-order 2 is the order of the accelerometer's "
+     "low-pass, and --acc-lowpass is 0"),
     (["--heading-only", "1"], "--heading-only 1 leaves the tilt to --tilt-tau's correction"),
     (["--heading-tau", "inf"], "--heading-tau must be a finite number >= 0 (seconds; 0: no"),
     (["--heading-gate", "1"], "--heading-gate 1 gates the heading correction, and --heading-tau"),

@@ -22,6 +22,7 @@ from manifold_nets_examples.broad.evaluate import input_settings
 from manifold_nets_examples.broad.learning import RandomHeading, tilt, without_magnetometer
 from manifold_nets_examples.broad.metric import errors, matrix_to_quat, quat_multiply, rmse
 from manifold_nets_examples.broad.prefilter import (
+    butterworth2,
     OnlinePrefilter,
     lowpass_acc,
     prefilter_dataset,
@@ -102,6 +103,44 @@ def test_the_prefilter_is_exact_for_gravity_alone_and_smooths_linear_acceleratio
     assert np.array_equal(lowpass_acc(gyr, acc, 1 / DT, 0.0), acc)
     with pytest.raises(ValueError, match="time constant"):
         lowpass_acc(gyr, acc, 1 / DT, -1.0)
+
+
+def test_the_second_order_low_pass_is_vqf_s_butterworth_filter_in_the_strapdown_frame():
+    """``order=2``: gain 1 at rest and ``1 / sqrt(2)`` at VQF's cutoff ``sqrt(2) / (2 pi tau)``
+    Hz; with no turn, the textbook difference equation run sample by sample from rest on the
+    first reading; gravity alone passes unchanged while the body turns; linear acceleration of
+    zero mean is attenuated more than by the first-order filter of the same ``tau``."""
+    rate, tau = 1 / DT, 2.5
+    b, a = butterworth2(rate, tau)
+    assert a[0] == 1.0
+    fc = math.sqrt(2.0) / (2 * math.pi * tau)
+    for f, gain in ((0.0, 1.0), (fc, 1 / math.sqrt(2.0))):
+        z = np.exp(-2j * math.pi * f / rate)
+        h = (b[0] + b[1] * z + b[2] * z * z) / (a[0] + a[1] * z + a[2] * z * z)
+        assert abs(abs(h) - gain) < 1e-9
+    rng = np.random.default_rng(3)
+    acc = 9.81 * np.array([0.1, -0.2, 1.0]) + rng.normal(0, 1.0, (3000, 3))
+    out = lowpass_acc(np.zeros((3000, 3)), acc, rate, tau, order=2)
+    x, y = [acc[0], acc[0]], [acc[0], acc[0]]  # at rest on the first reading
+    for t in range(3000):
+        y.append(b[0] * acc[t] + b[1] * x[-1] + b[2] * x[-2] - a[1] * y[-1] - a[2] * y[-2])
+        x.append(acc[t])
+    np.testing.assert_allclose(out, np.array(y[2:]), rtol=0, atol=1e-9)
+    T = 6000
+    gyr = np.cumsum(rng.normal(0, 0.05, (T, 3)), 0)
+    world = np.einsum("ij,tjk->tik", G.exp(torch.tensor([0.3, -0.2, 0.1]).double()).numpy(),
+                      strapdown(gyr, DT))  # fmt: skip
+    gravity = np.einsum("tji,j->ti", world, [0.0, 0.0, 9.81])
+    np.testing.assert_allclose(lowpass_acc(gyr, gravity, rate, tau, order=2), gravity, atol=1e-9)
+    t = np.arange(T) * DT
+    lin_w = 3.0 * np.stack((np.sin(2 * np.pi * t), np.cos(2 * np.pi * t), 0 * t), 1)
+    moving = gravity + np.einsum("tji,tj->ti", world, lin_w)
+    settled = slice(round(4 * tau * rate), None)
+    err = {k: np.linalg.norm(lowpass_acc(gyr, moving, rate, tau, order=k) - gravity,
+                             axis=1)[settled].mean() for k in (1, 2)}  # fmt: skip
+    assert err[2] < 0.5 * err[1]
+    with pytest.raises(ValueError, match="order must be 1 .* or 2"):
+        lowpass_acc(gyr, moving, rate, tau, order=3)
 
 
 def test_the_rest_bias_is_the_gyroscope_at_rest_and_ignores_a_slow_steady_turn():
@@ -205,7 +244,8 @@ def six_d_runs(tmp_path_factory):
               "1", "--window", "32", "--stride", "64", "--finetune-epochs", "1", "--batch-size",
               "4", "--mounting", "0"]  # fmt: skip
     train_cmd.main([*common, "--out", str(tmp / "r6"), "--magnetometer", "0",
-                    "--acc-lowpass", "0.5", "--rest-bias", "1", "--tilt-tau", "1.5"])  # fmt: skip
+                    "--acc-lowpass", "0.5", "--acc-lowpass-order", "2", "--rest-bias", "1",
+                    "--tilt-tau", "1.5"])  # fmt: skip
     train_cmd.main([*common, "--out", str(tmp / "r9")])
     return tmp, split
 
@@ -216,13 +256,14 @@ def test_a_6d_run_records_what_it_reads_and_is_scored_on_whole_trials(six_d_runs
 
     # the run's system config says how its observer reads, so its files alone suffice
     assert input_settings(load_observer(tmp / "r6")[1]) == {
-        "magnetometer": False, "acc_lowpass": 0.5, "rest_bias": True}
+        "magnetometer": False, "acc_lowpass": 0.5, "acc_lowpass_order": 2, "rest_bias": True}
     assert input_settings(load_observer(tmp / "r9")[1]) == {
-        "magnetometer": True, "acc_lowpass": 0.0, "rest_bias": False}
-    assert yaml.safe_load((tmp / "r6" / "config.yaml").read_text())["system"]["rest_bias"]
+        "magnetometer": True, "acc_lowpass": 0.0, "acc_lowpass_order": 1, "rest_bias": False}
+    system6 = yaml.safe_load((tmp / "r6" / "config.yaml").read_text())["system"]
+    assert system6["rest_bias"] and system6["acc_lowpass_order"] == 2
     # a system config without the keys (an older run, the first zoo entry) reads the raw 9-D
     assert input_settings(object()) == {"magnetometer": True, "acc_lowpass": 0.0,
-                                        "rest_bias": False}
+                                        "acc_lowpass_order": 1, "rest_bias": False}
     res = json.loads((tmp / "r6" / "results" / "learned_test.json").read_text())
     assert math.isfinite(res["mean"]["inclination"])
     prior = load_observer(tmp / "r6")[0].signature()["prior"]

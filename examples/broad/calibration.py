@@ -69,7 +69,8 @@ def _decimated(trials, system, moving: bool = False):
     magnetometer where it was trained so: :func:`.evaluate.input_settings`), decimated to its
     steps."""
     reads = input_settings(system)
-    batch, _ = pad_trials([prefiltered(t, reads["acc_lowpass"], reads["rest_bias"]) for t in trials])
+    batch, _ = pad_trials([prefiltered(t, reads["acc_lowpass"], reads["rest_bias"],
+                                       reads["acc_lowpass_order"]) for t in trials])
     k = decimation(system, trials[0].rate)
     data = decimate(batch, k, 1.0 / trials[0].rate)
     if not reads["magnetometer"]:

@@ -90,7 +90,8 @@ def observer_quaternions(
     weights, a diverging observer): a file of NaN quaternions is never the answer."""
     reads = input_settings(system)
     batch, lengths = pad_trials(
-        [prefiltered(t, reads["acc_lowpass"], reads["rest_bias"]) for t in trials])
+        [prefiltered(t, reads["acc_lowpass"], reads["rest_bias"], reads["acc_lowpass_order"])
+         for t in trials])
     k = decimation(system, trials[0].rate)
     dt = 1.0 / trials[0].rate
     R = estimate_rotations(observer, system, decimate(batch, k, dt), reads["magnetometer"])
@@ -142,10 +143,11 @@ def _save_npz(path: Path, arrays: dict) -> None:
 
 def input_settings(system) -> dict:
     """How the observer of ``system`` reads a recording (its config's ``magnetometer``,
-    ``acc_lowpass`` and ``rest_bias``; a system without them, such as one loaded from an older
-    run, reads the raw 9-D readings)."""
+    ``acc_lowpass``, ``acc_lowpass_order`` and ``rest_bias``; a system without them, such as one
+    loaded from an older run, reads the raw 9-D readings)."""
     return {"magnetometer": bool(getattr(system, "magnetometer", True)),
             "acc_lowpass": float(getattr(system, "acc_lowpass", 0.0)),
+            "acc_lowpass_order": int(getattr(system, "acc_lowpass_order", 1)),
             "rest_bias": bool(getattr(system, "rest_bias", False))}
 
 

@@ -14,7 +14,8 @@ State, each ``(B, ...)`` in the filter's dtype: ``count`` ``(B,)`` the samples s
 ``rest``: ``window`` ``(B, n, 12)`` the last ``n`` samples' ``(gyr, gyr^2, acc, acc^2)`` (acc in
 m/s^2), oldest first (zeros before the start), ``bias_sum`` ``(B, 3)`` the sum of the window
 means at rest so far and ``rests`` ``(B,)`` their number; with ``tau > 0``: ``frame`` ``(B, 3,
-3)`` the strapdown ``Q_t`` and ``lowpassed`` ``(B, 3)`` the filtered ``f_t`` (in ``y``'s units).
+3)`` the strapdown ``Q_t`` and ``lowpassed`` ``(B, 3)`` the filtered ``f_t`` (in ``y``'s units;
+with ``order=2``, VQF's second-order filter, ``lowpass_state`` ``(B, 3, 2)`` instead).
 
 :meth:`~.simulator.BroadSimulator.readings_filter` builds one from the system's config (its
 ``rest_bias``, ``acc_lowpass``, ``magnetometer`` and ``dt``): the filter runs at the observer's
@@ -34,6 +35,7 @@ from manifold_nets.observer import ReadingsFilter
 from manifold_nets.system import check_number
 
 from .data import G0
+from .prefilter import butterworth2
 
 __all__ = ["ImuPrefilter", "MAX_WINDOW"]
 
@@ -58,6 +60,9 @@ class ImuPrefilter(ReadingsFilter):
         window: the rest window in seconds; ``th_gyr`` (rad/s), ``th_acc`` (m/s^2) and
             ``th_mean`` (rad/s) VQF's rest thresholds; ``g0`` the accelerometer's unit in
             ``y`` (m/s^2).
+        order: the low-pass, 1 (first order) or 2 (VQF's second-order Butterworth filter,
+            :func:`.prefilter.butterworth2`; its state ``lowpass_state`` ``(B, 3, 2)``, direct
+            form II transposed, in place of ``lowpassed``).
     """
 
     name = "broad_imu_prefilter"
@@ -65,8 +70,12 @@ class ImuPrefilter(ReadingsFilter):
     def __init__(self, rate: float, tau: float = 0.0, rest: bool = False,
                  magnetometer: bool = True, window: float = 1.5,
                  th_gyr: float = math.radians(2.0), th_acc: float = 0.5,
-                 th_mean: float = math.radians(1.0), g0: float = G0):
+                 th_mean: float = math.radians(1.0), g0: float = G0, order: int = 1):
         super().__init__(measurement_dim=6, input_dim=3)
+        if isinstance(order, bool) or order not in (1, 2):
+            raise ValueError(f"ImuPrefilter: order must be 1 (first order) or 2 (VQF's "
+                             f"Butterworth filter), got {order!r}.")
+        self.order = order
         self.rate, self.tau = _positive("rate", rate), _positive("tau", tau, zero=True)
         for what, flag in (("rest", rest), ("magnetometer", magnetometer)):
             if not isinstance(flag, bool):
@@ -83,15 +92,18 @@ class ImuPrefilter(ReadingsFilter):
                 "right?"
             )
         self.alpha = 1.0 - math.exp(-1.0 / (self.rate * self.tau)) if self.tau else 0.0
+        self.ba = butterworth2(self.rate, self.tau) if self.tau and order == 2 else None
 
     def extra_signature(self) -> dict:
         return {"rate": self.rate, "tau": self.tau, "rest": self.rest,
                 "magnetometer": self.magnetometer, "window": self.window, "th_gyr": self.th_gyr,
-                "th_acc": self.th_acc, "th_mean": self.th_mean, "g0": self.g0}
+                "th_acc": self.th_acc, "th_mean": self.th_mean, "g0": self.g0,
+                **({"order": 2} if self.order == 2 else {})}  # fmt: skip
 
     def state_names(self) -> list[str]:
+        lowpass = ["frame", "lowpass_state" if self.ba is not None else "lowpassed"]
         return (["count"] + (["window", "bias_sum", "rests"] if self.rest else [])
-                + (["frame", "lowpassed"] if self.tau else []))  # fmt: skip
+                + (lowpass if self.tau else []))  # fmt: skip
 
     def init_state(self, batch: int, dtype: torch.dtype = torch.float64, device=None):
         if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
@@ -102,7 +114,8 @@ class ImuPrefilter(ReadingsFilter):
             out += [torch.zeros(batch, self.n, 12, **kw), torch.zeros(batch, 3, **kw),
                     torch.zeros(batch, **kw)]
         if self.tau:
-            out += [torch.eye(3, **kw).expand(batch, 3, 3).clone(), torch.zeros(batch, 3, **kw)]
+            shape = (batch, 3, 2) if self.ba is not None else (batch, 3)
+            out += [torch.eye(3, **kw).expand(batch, 3, 3).clone(), torch.zeros(shape, **kw)]
         return tuple(out)
 
     def _rest_test(self, sums: torch.Tensor, seen: torch.Tensor):
@@ -140,11 +153,22 @@ class ImuPrefilter(ReadingsFilter):
             frame, f = rest
             frame = frame @ _SO3.exp(gyr / self.rate)
             a_i = (frame @ acc[:, :, None])[..., 0]
-            f = torch.where((count == 0)[:, None], a_i, f)  # f_0 = a^I_0
-            f = f + self.alpha * (a_i - f)
+            if self.ba is not None:
+                (b0, b1, b2), (_, a1, a2) = self.ba
+                z = torch.where((count == 0)[:, None, None], self._at_rest(a_i), f)
+                f = b0 * a_i + z[..., 0]
+                state = torch.stack((b1 * a_i - a1 * f + z[..., 1], b2 * a_i - a2 * f), -1)
+            else:
+                f = torch.where((count == 0)[:, None], a_i, f)  # f_0 = a^I_0
+                f = state = f + self.alpha * (a_i - f)
             acc = (frame.transpose(-1, -2) @ f[:, :, None])[..., 0]
-            out += [frame, f]
+            out += [frame, state]
         return tuple(out), self._out(y, acc), gyr
+
+    def _at_rest(self, a: torch.Tensor) -> torch.Tensor:
+        """``(*, 3, 2)``: the second-order filter's state at rest on ``a`` ``(*, 3)``."""
+        (b0, _, b2), (_, _, a2) = self.ba
+        return torch.stack(((1.0 - b0) * a, (b2 - a2) * a), -1)
 
     def sequence_unchecked(self, state, y, u):
         if y.shape[1] == 0:
@@ -167,10 +191,15 @@ class ImuPrefilter(ReadingsFilter):
             frame, f = rest
             frames = frame[:, None] @ _prefix_product(_SO3.exp(gyr / self.rate))
             a_i = (frames @ acc[..., None])[..., 0]
-            f = torch.where((count == 0)[:, None], a_i[:, 0], f)  # f_0 = a^I_0
-            f = _lowpass(a_i, f, self.alpha)
+            if self.ba is not None:
+                z = torch.where((count == 0)[:, None, None], self._at_rest(a_i[:, 0]), f)
+                f, last = _lowpass2(a_i, z, self.ba)
+            else:
+                f = torch.where((count == 0)[:, None], a_i[:, 0], f)  # f_0 = a^I_0
+                f = _lowpass(a_i, f, self.alpha)
+                last = f[:, -1]
             acc = (frames.transpose(-1, -2) @ f[..., None])[..., 0]
-            out += [frames[:, -1], f[:, -1]]
+            out += [frames[:, -1], last]
         return tuple(out), self._out(y, acc), gyr
 
 
@@ -209,3 +238,21 @@ def _lowpass(a: torch.Tensor, f_prev: torch.Tensor, alpha: float) -> torch.Tenso
         power *= power
         d *= 2
     return c
+
+
+def _lowpass2(a: torch.Tensor, z: torch.Tensor, ba) -> tuple[torch.Tensor, torch.Tensor]:
+    """``(N, T, 3)`` outputs and the last state ``(N, 3, 2)`` of the second-order filter ``ba``
+    (``(b, a)``, :func:`.prefilter.butterworth2`) on ``a`` ``(N, T, 3)`` from the state ``z``
+    ``(N, 3, 2)`` (direct form II transposed: ``s_t = A s_{t-1} + B a_t``, ``f_t = b0 a_t +
+    s_{t-1}[0]``; a parallel scan of ``log2 T`` passes, as :func:`_lowpass`)."""
+    (b0, b1, b2), (_, a1, a2) = ba
+    A = a.new_tensor([[-a1, 1.0], [-a2, 0.0]])
+    s = a[..., None] * a.new_tensor([b1 - a1 * b0, b2 - a2 * b0])  # (N, T, 3, 2)
+    s = torch.cat((s[:, :1] + z[:, None] @ A.T, s[:, 1:]), 1)
+    d, length, power = 1, s.shape[1], A
+    while d < length:
+        s = torch.cat((s[:, :d], s[:, d:] + s[:, :-d] @ power.T), 1)
+        power = power @ power
+        d *= 2
+    before = torch.cat((z[:, None], s[:, :-1]), 1)
+    return b0 * a + before[..., 0], s[:, -1]

@@ -29,6 +29,13 @@ input:
   ``f_0 = a^I_0``;
 * back in the body frame, ``acc'_t = Q_t^T f_t``.
 
+``order=2`` low-passes ``a^I`` by VQF's own filter instead, a second-order Butterworth filter
+with the cutoff ``sqrt(2) / (2 pi tau)`` Hz (:func:`butterworth2`), also started at rest on
+``a^I_0``. Under a correction that follows it closely it gives VQF's tilt: the complementary
+prior alone (``benchmarks/broad_tilt_prior.py --order 2``) reaches VQF's inclination on the
+training trials. The learned observers are trained on the first-order filter (the learned tilt
+over the second did not lower the cross-validated total: ``docs/real_data.md``).
+
 At rest ``acc' = acc``; under linear acceleration of zero mean over ``tau`` seconds ``acc'`` is
 gravity, turned by at most the gyroscope's bias over ``tau`` (about ``0.23 tau`` deg here
 uncorrected).
@@ -46,12 +53,13 @@ import math
 
 import numpy as np
 import torch
-from scipy.signal import lfilter
+from scipy.signal import lfilter, lfilter_zi
 
 from groups import SO3
 
 __all__ = [
-    "rest_bias", "strapdown", "lowpass_acc", "prefiltered", "prefilter_dataset", "OnlinePrefilter",
+    "rest_bias", "strapdown", "butterworth2", "lowpass_acc", "prefiltered", "prefilter_dataset",
+    "OnlinePrefilter",
 ]
 
 _SO3 = SO3()
@@ -100,31 +108,55 @@ def strapdown(gyr: np.ndarray, dt: float) -> np.ndarray:
     return Q.numpy()
 
 
-def lowpass_acc(gyr: np.ndarray, acc: np.ndarray, rate: float, tau: float) -> np.ndarray:
-    """``acc'`` of the module docstring, shaped like ``acc``; ``tau`` seconds (0: ``acc``)."""
+def butterworth2(rate: float, tau: float) -> tuple[list[float], list[float]]:
+    """``(b, a)`` of VQF's accelerometer low-pass: a second-order Butterworth filter with the
+    cutoff ``sqrt(2) / (2 pi tau)`` Hz, discretised by the bilinear transform at ``rate`` Hz
+    (``a[0] = 1``; unit gain at rest, ``1 / sqrt(2)`` at the cutoff)."""
+    k = math.tan(math.pi * (math.sqrt(2.0) / (2.0 * math.pi * tau)) / rate)
+    n = 1.0 / (1.0 + math.sqrt(2.0) * k + k * k)
+    return ([k * k * n, 2.0 * k * k * n, k * k * n],
+            [1.0, 2.0 * (k * k - 1.0) * n, (1.0 - math.sqrt(2.0) * k + k * k) * n])
+
+
+def lowpass_acc(
+    gyr: np.ndarray, acc: np.ndarray, rate: float, tau: float, order: int = 1
+) -> np.ndarray:
+    """``acc'`` of the module docstring, shaped like ``acc``; ``tau`` seconds (0: ``acc``).
+    ``order`` 1: the first-order filter there; 2: VQF's second-order Butterworth filter
+    (:func:`butterworth2`), started at rest on ``a^I_0`` like the first."""
     if not (math.isfinite(tau) and tau >= 0):
         raise ValueError(f"the low-pass time constant must be a finite number >= 0 s, got {tau!r}.")
+    if order not in (1, 2):
+        raise ValueError(f"the low-pass order must be 1 (first order) or 2 (VQF's Butterworth), "
+                         f"got {order!r}.")
     if tau == 0:
         return np.asarray(acc, dtype=np.float64)
     dt = 1.0 / rate
     Q = strapdown(gyr, dt)
     a_i = (Q @ np.asarray(acc, dtype=np.float64)[..., None])[..., 0]
-    alpha = 1.0 - math.exp(-dt / tau)
-    zi = (1 - alpha) * a_i[..., :1, :]  # f_0 = a^I_0
-    f, _ = lfilter([alpha], [1.0, alpha - 1.0], a_i, axis=-2, zi=zi)
+    if order == 1:
+        alpha = 1.0 - math.exp(-dt / tau)
+        b, a, zi = [alpha], [1.0, alpha - 1.0], (1 - alpha) * a_i[..., :1, :]  # f_0 = a^I_0
+    else:
+        b, a = butterworth2(rate, tau)
+        zi = lfilter_zi(b, a)[:, None] * a_i[..., :1, :]  # at rest on a^I_0: f_0 = a^I_0
+    f, _ = lfilter(b, a, a_i, axis=-2, zi=zi)
     return (np.swapaxes(Q, -1, -2) @ f[..., None])[..., 0]
 
 
-def prefiltered(trial, tau: float = 0.0, rest: bool = False):
+def prefiltered(trial, tau: float = 0.0, rest: bool = False, order: int = 1):
     """``trial`` (a :class:`~.data.Trial`) with its gyroscope's rest bias removed (``rest``)
-    and its accelerometer low-passed (``tau`` s); the trial itself when neither."""
+    and its accelerometer low-passed (``tau`` s, a filter of ``order`` 1 or 2:
+    :func:`lowpass_acc`); the trial itself when neither."""
     gyr = trial.gyr - rest_bias(trial.gyr, trial.acc, trial.rate) if rest else trial.gyr
     if tau == 0:
         return dataclasses.replace(trial, gyr=gyr) if rest else trial
-    return dataclasses.replace(trial, gyr=gyr, acc=lowpass_acc(gyr, trial.acc, trial.rate, tau))
+    acc = lowpass_acc(gyr, trial.acc, trial.rate, tau, order)
+    return dataclasses.replace(trial, gyr=gyr, acc=acc)
 
 
-def prefilter_dataset(data, dt: float, tau: float = 0.0, rest: bool = False, g0: float = 9.81):
+def prefilter_dataset(data, dt: float, tau: float = 0.0, rest: bool = False, g0: float = 9.81,
+                      order: int = 1):
     """A full-rate :class:`~manifold_nets.data.TrajectoryDataset` of the BROAD layout
     (``y = (acc / g0, mag)``, ``u = gyr`` over each step, step ``dt`` s) pre-filtered like
     :func:`prefiltered`."""
@@ -136,18 +168,26 @@ def prefilter_dataset(data, dt: float, tau: float = 0.0, rest: bool = False, g0:
         gyr = gyr - rest_bias(gyr, acc * g0, 1.0 / dt)
         u = torch.from_numpy(gyr).to(u)
     if tau:
-        y[..., :3] = torch.from_numpy(lowpass_acc(gyr, acc, 1.0 / dt, tau)).to(y)
+        y[..., :3] = torch.from_numpy(lowpass_acc(gyr, acc, 1.0 / dt, tau, order)).to(y)
     return type(data)(data.states, y, u, data.meta, data.mask)
 
 
 class OnlinePrefilter:
     """:func:`prefiltered` one sample at a time, for online use: ``update(gyr, acc) -> (gyr',
-    acc')`` (each ``(3,)`` numpy, rad/s and m/s^2) with the same results as the batch functions
+    acc')`` (each ``(3,)`` numpy, rad/s and m/s^2; ``order`` that of :func:`lowpass_acc`, the
+    second order's state in direct form II transposed) with the same results as the batch functions
     (to rounding: running sums over a ring buffer of the rest window, the strapdown frame
     multiplied out sample by sample)."""
 
-    def __init__(self, rate: float, tau: float = 0.0, rest: bool = False, window: float = 1.5):
+    def __init__(self, rate: float, tau: float = 0.0, rest: bool = False, window: float = 1.5,
+                 order: int = 1):
         self.rate, self.tau, self.rest = float(rate), float(tau), bool(rest)
+        if order not in (1, 2):
+            raise ValueError(f"the low-pass order must be 1 (first order) or 2 (VQF's "
+                             f"Butterworth), got {order!r}.")
+        self.order = order
+        self.ba = butterworth2(self.rate, self.tau) if order == 2 and tau else None
+        self.z = None  # the second-order filter's state (direct form II transposed)
         self.n = max(2, round(window * rate))
         self.buf = np.zeros((self.n, 3, 3))  # gyr, gyr^2, acc per sample
         self.sums = np.zeros((3, 3))
@@ -188,5 +228,12 @@ class OnlinePrefilter:
             np.eye(3) + math.sin(t) / t * K + (1 - math.cos(t)) / t**2 * (K @ K))
         self.Q = self.Q @ inc
         a_i = self.Q @ acc
-        self.f = a_i if self.f is None else self.f + self.alpha * (a_i - self.f)
+        if self.ba is not None:
+            (b0, b1, b2), (_, a1, a2) = self.ba
+            if self.z is None:  # at rest on a^I_0
+                self.z = [(1.0 - b0) * a_i, (b2 - a2) * a_i]
+            self.f = b0 * a_i + self.z[0]
+            self.z = [b1 * a_i - a1 * self.f + self.z[1], b2 * a_i - a2 * self.f]
+        else:
+            self.f = a_i if self.f is None else self.f + self.alpha * (a_i - self.f)
         return gyr, self.Q.T @ self.f

@@ -176,6 +176,7 @@ class BroadSimulator(System):
         magnetometer: bool = True,
         acc_lowpass: float = 0.0,
         rest_bias: bool = False,
+        acc_lowpass_order: int = 1,
     ):
         self.dt = _number("dt (the step length in seconds)", dt, positive=True)
         self._init_motion(level_fraction, tilt_max_deg, omega_rms, omega_freq, num_terms,
@@ -203,25 +204,35 @@ class BroadSimulator(System):
         self.world_disturbance_freq = _range("world_disturbance_freq (Hz)",
                                              world_disturbance_freq)
         check_frequencies(_OWNER, *self.world_disturbance_freq, self.dt)
-        self._init_readings(magnetometer, acc_lowpass, rest_bias)
+        self._init_readings(magnetometer, acc_lowpass, rest_bias, acc_lowpass_order)
         self.group = SO3()
 
-    def _init_readings(self, magnetometer, acc_lowpass, rest_bias) -> None:
+    def _init_readings(self, magnetometer, acc_lowpass, rest_bias, acc_lowpass_order=1) -> None:
         """How a learned observer of this system reads the recordings (:mod:`.prefilter`,
         :func:`.evaluate.input_settings`), kept in the system's config so that a trained
         observer's files say it: with or without the ``magnetometer`` (a 6-D observer), the
-        accelerometer low-passed over ``acc_lowpass`` seconds (0: raw), the gyroscope less its
-        ``rest_bias``. The simulation itself is unchanged by them."""
+        accelerometer low-passed over ``acc_lowpass`` seconds (0: raw) by a filter of
+        ``acc_lowpass_order`` 1 (first order) or 2 (VQF's Butterworth filter), the gyroscope less
+        its ``rest_bias``. The simulation itself is unchanged by them."""
         for name, flag in (("magnetometer", magnetometer), ("rest_bias", rest_bias)):
             if not isinstance(flag, bool):
                 raise ValueError(f"{_OWNER}: {name} must be true or false, got {flag!r}.")
         self.magnetometer, self.rest_bias = magnetometer, rest_bias
         self.acc_lowpass = _number("acc_lowpass (s)", acc_lowpass)
+        if isinstance(acc_lowpass_order, bool) or acc_lowpass_order not in (1, 2):
+            raise ValueError(f"{_OWNER}: acc_lowpass_order must be 1 (first order) or 2 (VQF's "
+                             f"second-order Butterworth filter), got {acc_lowpass_order!r}.")
+        if acc_lowpass_order == 2 and not self.acc_lowpass > 0:
+            raise ValueError(f"{_OWNER}: acc_lowpass_order 2 is the order of the accelerometer's "
+                             "low-pass, and acc_lowpass is 0 (no low-pass): give acc_lowpass "
+                             "(seconds, e.g. 3) or drop acc_lowpass_order.")
+        self.acc_lowpass_order = int(acc_lowpass_order)
+        kind = "" if self.acc_lowpass_order == 1 else " (second-order Butterworth)"
         steps = [what for what, on in (
             ("the magnetometer zeroed", not magnetometer),
             ("the gyroscope less its bias estimated at rest", rest_bias),
-            (f"the accelerometer low-passed over {self.acc_lowpass:g} s in a gyro-strapdown "
-             "frame", self.acc_lowpass > 0),
+            (f"the accelerometer low-passed over {self.acc_lowpass:g} s{kind} in a "
+             "gyro-strapdown frame", self.acc_lowpass > 0),
         ) if on]
         self.preprocessing = None if not steps else (
             "; ".join(steps) + " (readings_filter(): examples/broad/imu_prefilter.py, which "
@@ -237,7 +248,7 @@ class BroadSimulator(System):
         from .imu_prefilter import ImuPrefilter
 
         return ImuPrefilter(1.0 / self.dt, tau=self.acc_lowpass, rest=self.rest_bias,
-                            magnetometer=self.magnetometer)
+                            magnetometer=self.magnetometer, order=self.acc_lowpass_order)
 
     def _init_motion(self, level_fraction, tilt_max_deg, omega_rms, omega_freq, num_terms,
                      max_rate, rest_probability, rest_duration, rest_ramp) -> None:
@@ -434,4 +445,5 @@ _CONFIG_KEYS = (
 #: How an observer reads the recordings (:meth:`BroadSimulator._init_readings`): in the config
 #: only where they differ from these defaults (the raw 9-D readings), so configs written before
 #: them (``configs/system/broad_sim.yaml``, the first zoo entry) are still the whole config.
-_READING_DEFAULTS = {"magnetometer": True, "acc_lowpass": 0.0, "rest_bias": False}
+_READING_DEFAULTS = {"magnetometer": True, "acc_lowpass": 0.0, "rest_bias": False,
+                     "acc_lowpass_order": 1}

@@ -93,6 +93,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--acc-lowpass", type=float, default=0.0,
                    help="seconds: the accelerometer low-passed in a gyro-strapdown frame "
                         "(prefilter.py) before the observer reads it; 0: raw")
+    p.add_argument("--acc-lowpass-order", type=int, choices=(1, 2), default=1,
+                   help="the low-pass of --acc-lowpass: 1 first order, 2 VQF's second-order "
+                        "Butterworth filter (prefilter.py)")
     p.add_argument("--rest-bias", type=int, choices=(0, 1), default=0,
                    help="1: the gyroscope's bias from rest removed before the observer reads it "
                         "(prefilter.py)")
@@ -146,6 +149,10 @@ def check_args(args) -> None:
             raise bad("--" + flag.replace("_", "-"), "a finite number > 0", getattr(args, flag))
     if not (math.isfinite(args.acc_lowpass) and args.acc_lowpass >= 0):
         raise bad("--acc-lowpass", "a finite number >= 0 (seconds; 0: raw)", args.acc_lowpass)
+    if args.acc_lowpass_order == 2 and not args.acc_lowpass > 0:
+        raise ValueError("--acc-lowpass-order 2 is the order of the accelerometer's low-pass, and "
+                         "--acc-lowpass is 0: give --acc-lowpass (seconds, e.g. 3) or drop "
+                         "--acc-lowpass-order.")
     if not (math.isfinite(args.tilt_tau) and args.tilt_tau >= 0):
         raise bad("--tilt-tau", "a finite number >= 0 (seconds; 0: no tilt correction)",
                   args.tilt_tau)
@@ -186,7 +193,7 @@ def pretrain(args, system, model, out: Path, config: dict) -> Path:
     n, k = args.pretrain_sequences, args.decimation
     full_rate = BroadSimulator()  # this IMU at 285.7 Hz, decimated like the recordings
     data = prefilter_dataset(full_rate.simulate(n, args.pretrain_length * k, 1.0, gen), BROAD_DT,
-                             args.acc_lowpass, bool(args.rest_bias))
+                             args.acc_lowpass, bool(args.rest_bias), order=args.acc_lowpass_order)
     data = decimate(data, k, BROAD_DT)
     n_val = max(1, n // 8)
     if not args.magnetometer:
@@ -276,13 +283,14 @@ def prepare(args) -> dict:
         raise BroadFormatError(f"{args.split or 'configs/broad/trials.yaml'}: fine-tuning needs "
                                f"the split(s) {missing}; the file has {sorted(split)}.")
     trials = {s: read_trials(args.data_dir, split[s]) for s in dict.fromkeys(stages + evaluated)}
-    trials = {s: [prefiltered(t, args.acc_lowpass, bool(args.rest_bias)) for t in ts]
-              for s, ts in trials.items()}
+    trials = {s: [prefiltered(t, args.acc_lowpass, bool(args.rest_bias), args.acc_lowpass_order)
+                  for t in ts] for s, ts in trials.items()}  # fmt: skip
     for s in evaluated:
         check_scored(trials[s], f"--eval-splits {s}")
     system = BroadSimulator(  # the observer's step, and how it reads the recordings
         dt=args.decimation * BROAD_DT, magnetometer=bool(args.magnetometer),
-        acc_lowpass=args.acc_lowpass, rest_bias=bool(args.rest_bias))
+        acc_lowpass=args.acc_lowpass, rest_bias=bool(args.rest_bias),
+        acc_lowpass_order=args.acc_lowpass_order)
     model_cfg = model_config(args.hidden_size, args.num_layers, args.output_scale, args.tilt_tau,
                              bool(args.heading_only), args.heading_tau,
                              field_gate(system) if args.heading_gate else None)
