@@ -164,7 +164,7 @@ def test_signature_build_and_widening_from_the_inner_prior(tmp_path):
     "make, message",
     [
         (lambda: ComplementaryPrior("R", (0, 3), 0.0, DT), r"tau must be a number .*seconds"),
-        (lambda: ComplementaryPrior("R", (0, 3), 0.4 * DT, DT),
+        (lambda: observer(ComplementaryPrior("R", (0, 3), 0.4 * DT, DT)),
          r"tau = 0.004 s is shorter than the step dt = 0.01 s, so each step would turn by "
          r"dt / tau = 2.5 times the error .* give tau >= dt"),
         (lambda: ComplementaryPrior("R", (0, 3), TAU, DT, reference=(0, 0, 0)),

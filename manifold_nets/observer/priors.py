@@ -225,13 +225,6 @@ class ComplementaryPrior(Prior):
         self.vector = check_spans("complementary prior: vector", {"v": vector}, "(y, u)")["v"]
         self.tau = check_number("complementary prior: tau", tau, 1e-9, 1e9, " (seconds)")
         self.dt = check_number("complementary prior: dt", dt, 1e-12, 1e6, " (seconds)")
-        if self.tau < self.dt:
-            raise ValueError(
-                f"complementary prior: tau = {self.tau:g} s is shorter than the step dt = "
-                f"{self.dt:g} s, so each step would turn by dt / tau = {self.dt / self.tau:.3g} "
-                "times the error and overshoot (diverging beyond 2); give tau >= dt (tau = dt "
-                "corrects the whole error in one step)."
-            )
         self.reference = _direction("reference", reference, "up is [0, 0, 1]")
         self.register_buffer("_r", _unit(self.reference), persistent=False)
         self.about = None if about is None else _direction("about", about, "up is [0, 0, 1]")
@@ -286,6 +279,13 @@ class ComplementaryPrior(Prior):
         if not (0 <= a and b <= width and b - a == 3):
             raise ValueError(f"complementary prior: vector = ({a}, {b}) must be a span of (y, u) "
                              f"(size {width}) of 3 entries.")
+        if self.tau < self.dt:  # after the factor checks: a prior for another system says so first
+            raise ValueError(
+                f"complementary prior: tau = {self.tau:g} s is shorter than the step dt = "
+                f"{self.dt:g} s, so each step would turn by dt / tau = {self.dt / self.tau:.3g} "
+                "times the error and overshoot (diverging beyond 2); give tau >= dt (tau = dt "
+                "corrects the whole error in one step)."
+            )
         self._slice, self._so3 = group.element_slice(self.factor), group.factor(self.factor)
         return self
 
