@@ -26,7 +26,8 @@ def test_the_zoo_observer_is_calibrated_on_the_readings_it_was_trained_on():
     k = decimation(system, trial.rate)
     raw = decimate(pad_trials([trial])[0], k, 1.0 / trial.rate)
     want = decimate(
-        pad_trials([prefiltered(trial, reads["acc_lowpass"], reads["rest_bias"])])[0], k, 1.0 / trial.rate
+        pad_trials([prefiltered(trial, reads["acc_lowpass"], reads["rest_bias"],
+                                reads["acc_lowpass_order"])])[0], k, 1.0 / trial.rate
     )
     got = _decimated([trial], system)
     assert torch.equal(got.measurements, want.measurements) and torch.equal(got.inputs, want.inputs)

@@ -150,7 +150,9 @@ def zoo_data(trial, tmp_path_factory):
     raw = decimate(trials_to_dataset([trial]), k, 1 / trial.rate)
     folder = tmp_path_factory.mktemp("zoo")
     save_dataset(raw, folder / "raw.npz")
-    save_dataset(prefilter_dataset(raw, system.dt, 1.0, rest=True), folder / "pre.npz")
+    pre = prefilter_dataset(raw, system.dt, system.acc_lowpass, rest=system.rest_bias,
+                            order=system.acc_lowpass_order)
+    save_dataset(pre, folder / "pre.npz")
     return observer, system, raw, folder
 
 
@@ -178,7 +180,7 @@ def test_the_exported_zoo_step_on_raw_readings_is_the_filtered_rollout(zoo_data,
         want = filtered(y, u)
     export_observer(filtered, tmp_path / "step.pt2", batch=1)
     step = load_exported_step(tmp_path / "step.pt2")
-    assert step.meta["readings_filter"]["tau"] == 1.0
+    assert step.meta["readings_filter"]["tau"] == system.acc_lowpass == 2.5
     state = step.initial_state()
     with torch.no_grad():
         for j in range(y.shape[1]):
