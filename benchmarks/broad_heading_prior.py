@@ -27,7 +27,7 @@ import time
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
-from broad_scores import scores, split_of  # noqa: E402
+from broad_scores import scores, split_of, vqf_scores  # noqa: E402
 
 from manifold_nets.atomic import write_text_atomic  # noqa: E402
 from manifold_nets_examples.broad.compare import ATTRIBUTION  # noqa: E402
@@ -38,13 +38,8 @@ from manifold_nets_examples.broad.simulator import BROAD_DT, BroadSimulator  # n
 
 def vqf_row(trials) -> dict | None:
     """VQF (9-D, online, default settings) on the same trials, when the ``vqf`` package is there."""
-    try:
-        from manifold_nets_examples.broad.reference import vqf_9d
-
-        quats = vqf_9d(trials)
-    except ImportError:
-        return None
-    return {"tau": "VQF", "gate": None, **scores(quats, trials, "heading")}
+    row = vqf_scores(trials, "heading")
+    return None if row is None else {"tau": "VQF", "gate": None, **row}
 
 
 def rows(trials, taus, tilt_tau: float) -> list[dict]:

@@ -1,5 +1,5 @@
 """What the BROAD prior benchmarks share (imported by the scripts beside this file): a split's
-trials, and the benchmark's metric over one estimate per trial."""
+trials, the benchmark's metric over one estimate per trial, and VQF's row beside them."""
 
 from __future__ import annotations
 
@@ -23,3 +23,15 @@ def scores(quats, trials, column: str) -> dict:
     per = [rmse(q, t.quat, t.movement & t.known) for q, t in zip(quats, trials)]
     return {**{k: float(np.mean([p[k] for p in per])) for k in ("total", "heading", "inclination")},
             "trials": {t.name[:2]: p[column] for t, p in zip(trials, per)}}
+
+
+def vqf_scores(trials, column: str, six_d: bool = False) -> dict | None:
+    """:func:`scores` of VQF (online, default settings; 9-D, or 6-D: its tilt) on ``trials``, or
+    ``None`` without the ``vqf`` package."""
+    try:
+        from manifold_nets_examples.broad.reference import vqf_6d, vqf_9d
+
+        quats = (vqf_6d if six_d else vqf_9d)(trials)
+    except ImportError:
+        return None
+    return scores(quats, trials, column)

@@ -28,7 +28,7 @@ import time
 os.environ.setdefault("OMP_NUM_THREADS", "1")
 
 import torch  # noqa: E402
-from broad_scores import scores, split_of  # noqa: E402
+from broad_scores import scores, split_of, vqf_scores  # noqa: E402
 
 from manifold_nets.atomic import write_text_atomic  # noqa: E402
 from manifold_nets_examples.broad.compare import ATTRIBUTION  # noqa: E402
@@ -57,15 +57,8 @@ def rows(trials, taus, lowpasses, order: int = 1) -> list[dict]:
 
 def vqf_row(trials) -> dict | None:
     """VQF (6-D, online, default settings: its tilt) on the same trials, when ``vqf`` is there."""
-    try:
-        from manifold_nets_examples.broad.reference import vqf_6d
-    except ImportError:
-        return None
-    try:
-        quats = vqf_6d(trials)
-    except ImportError:
-        return None
-    return {"lowpass": "VQF", "tau": "-", **scores(quats, trials, "inclination")}
+    row = vqf_scores(trials, "inclination", six_d=True)
+    return None if row is None else {"lowpass": "VQF", "tau": "-", **row}
 
 
 def table(result: list[dict], split: str, order: int = 1) -> str:

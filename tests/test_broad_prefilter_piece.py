@@ -181,35 +181,12 @@ def test_the_exported_zoo_step_on_raw_readings_is_the_filtered_rollout(zoo_data,
     export_observer(filtered, tmp_path / "step.pt2", batch=1)
     step = load_exported_step(tmp_path / "step.pt2")
     assert step.meta["readings_filter"]["tau"] == system.acc_lowpass == 2.5
+    assert step.meta["readings_filter"]["order"] == 2  # VQF's second-order low-pass
     state = step.initial_state()
     with torch.no_grad():
         for j in range(y.shape[1]):
             state = step(*state, y[:, j], u[:, j])
             np.testing.assert_allclose(state[0].numpy(), want[:, j + 1].flatten(1).numpy(),
                                        rtol=0, atol=1e-6)
+    assert state[-1].shape == (1, 3, 2)  # its state, two numbers per axis (lowpass_state)
 
-
-def test_the_exported_step_carries_the_second_order_filter_s_state(zoo_data, tmp_path):
-    """VQF's second-order low-pass in the exported step: its state is two more numbers per
-    axis, and the step on raw readings is the filtered rollout (the zoo observer's weights behind
-    a system that asks for the second-order filter)."""
-    from manifold_nets import export_observer
-    from manifold_nets.deploy import load_exported_step
-
-    observer, system, raw, _ = zoo_data
-    second = BroadSimulator(**{**system.config(), "acc_lowpass": 3.0, "acc_lowpass_order": 2})
-    filtered = with_readings_filter(observer, second)
-    assert filtered.prefilter.order == 2
-    y, u = raw.measurements[:, :60], raw.inputs[:, :60]
-    with torch.no_grad():
-        want = filtered(y, u)
-    export_observer(filtered, tmp_path / "step.pt2", batch=1)
-    step = load_exported_step(tmp_path / "step.pt2")
-    assert step.meta["readings_filter"]["order"] == 2
-    state = step.initial_state()
-    with torch.no_grad():
-        for j in range(y.shape[1]):
-            state = step(*state, y[:, j], u[:, j])
-            np.testing.assert_allclose(state[0].numpy(), want[:, j + 1].flatten(1).numpy(),
-                                       rtol=0, atol=1e-6)
-    assert [s.shape for s in state][-1] == (1, 3, 2)  # the filter's lowpass_state
