@@ -35,7 +35,7 @@ from manifold_nets.observer import ReadingsFilter
 from manifold_nets.system import check_number
 
 from .data import G0
-from .prefilter import butterworth2
+from .prefilter import butterworth2, butterworth2_at_rest
 
 __all__ = ["ImuPrefilter", "MAX_WINDOW"]
 
@@ -167,8 +167,7 @@ class ImuPrefilter(ReadingsFilter):
 
     def _at_rest(self, a: torch.Tensor) -> torch.Tensor:
         """``(*, 3, 2)``: the second-order filter's state at rest on ``a`` ``(*, 3)``."""
-        (b0, _, b2), (_, _, a2) = self.ba
-        return torch.stack(((1.0 - b0) * a, (b2 - a2) * a), -1)
+        return torch.stack(butterworth2_at_rest(self.ba, a), -1)
 
     def sequence_unchecked(self, state, y, u):
         if y.shape[1] == 0:

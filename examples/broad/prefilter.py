@@ -58,8 +58,8 @@ from scipy.signal import lfilter, lfilter_zi
 from groups import SO3
 
 __all__ = [
-    "rest_bias", "strapdown", "butterworth2", "lowpass_acc", "prefiltered", "prefilter_dataset",
-    "OnlinePrefilter",
+    "rest_bias", "strapdown", "butterworth2", "butterworth2_at_rest", "lowpass_acc", "prefiltered",
+    "prefilter_dataset", "OnlinePrefilter",
 ]
 
 _SO3 = SO3()
@@ -116,6 +116,14 @@ def butterworth2(rate: float, tau: float) -> tuple[list[float], list[float]]:
     n = 1.0 / (1.0 + math.sqrt(2.0) * k + k * k)
     return ([k * k * n, 2.0 * k * k * n, k * k * n],
             [1.0, 2.0 * (k * k - 1.0) * n, (1.0 - math.sqrt(2.0) * k + k * k) * n])
+
+
+def butterworth2_at_rest(ba, a):
+    """The two state values (direct form II transposed) of :func:`butterworth2`'s filter ``ba``
+    at rest on ``a``: the filter started there outputs ``a`` for as long as ``a`` holds (numpy
+    arrays or torch tensors alike)."""
+    (b0, _, b2), (_, _, a2) = ba
+    return (1.0 - b0) * a, (b2 - a2) * a
 
 
 def lowpass_acc(
@@ -231,7 +239,7 @@ class OnlinePrefilter:
         if self.ba is not None:
             (b0, b1, b2), (_, a1, a2) = self.ba
             if self.z is None:  # at rest on a^I_0
-                self.z = [(1.0 - b0) * a_i, (b2 - a2) * a_i]
+                self.z = list(butterworth2_at_rest(self.ba, a_i))
             self.f = b0 * a_i + self.z[0]
             self.z = [b1 * a_i - a1 * self.f + self.z[1], b2 * a_i - a2 * self.f]
         else:
