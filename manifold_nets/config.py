@@ -183,6 +183,11 @@ class TrainSettings:
     #: per-factor ``log L_if``: a product group's factors weigh alike too, whatever their
     #: units; :mod:`manifold_nets.losses`). The test loss the train command reports is ``L``.
     loss: str = "mse"
+    #: One weight >= 0 per embedding coordinate of the group, multiplying its squared error in
+    #: the training and validation loss (``null``: all 1). E.g. an attitude without a
+    #: magnetometer: ``[0, 0, 0, 0, 0, 0, 1, 1, 1]``, SO(3)'s third row ``R^T e_z`` alone, scores
+    #: the inclination and leaves the unobservable heading free (:mod:`manifold_nets.losses`).
+    loss_weights: Optional[list[float]] = None
     #: Steps left out at the start of every sequence in the training and validation loss: 1,
     #: the fixed start ``x_0`` only (the paper's ``L``); 10 matches the evaluation
     #: (``eval.skip_steps``), so the start-up transient does not decide the gradient. With

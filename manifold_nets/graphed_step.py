@@ -88,7 +88,7 @@ class GraphedStep:
 
     def _loss(self, batch: TrajectoryDataset) -> torch.Tensor:
         s = self.settings
-        return batch_loss(self.model, batch, None, s.loss, s.skip_steps)
+        return batch_loss(self.model, batch, None, s.loss, s.skip_steps, s.loss_weights)
 
     @staticmethod
     def _side_stream(fn):

@@ -34,6 +34,7 @@ from .config import TrainSettings
 from .data import TrajectoryDataset
 from .graphed_step import GraphedStep, check_graphable
 from .observer import ResidualObserver
+from .losses import check_loss_weights
 from .streaming import DataStream
 from .training_losses import (
     LOSSES,
@@ -178,6 +179,7 @@ def fit(
     paper's). Steps whose true state is unknown (``data.mask``) are left out of the loss.
     """
     check_settings(settings)
+    check_loss_weights(settings.loss_weights, model.group.embedding_dim)
     if settings.cuda_graph:
         check_graphable(model.device, settings.tbptt, start)
     stream = _stream(train_data, settings)
@@ -342,7 +344,8 @@ class _Trainer:
         """Epoch 0: the starting model's validation loss, its ``best.pt`` and log row."""
         s = self.settings
         v0 = validation_loss(
-            self.model, val, s.eval_batch_size, self.start_fn, s.loss, s.skip_steps
+            self.model, val, s.eval_batch_size, self.start_fn, s.loss, s.skip_steps,
+            s.loss_weights,
         )
         if not math.isfinite(v0) or v0 > EXPLODED:
             raise self.diverged("validation loss of the starting model", v0, 0)
@@ -369,7 +372,8 @@ class _Trainer:
             batches = batches[: s.max_batches]
         train_loss = self.train_batches(epoch, train, batches, transform)
         val_loss = validation_loss(
-            self.model, val, s.eval_batch_size, self.start_fn, s.loss, s.skip_steps
+            self.model, val, s.eval_batch_size, self.start_fn, s.loss, s.skip_steps,
+            s.loss_weights,
         )
         if not math.isfinite(val_loss) or exploded(val_loss, self.history[0]["val_loss"]):
             raise self.diverged("validation loss", val_loss, epoch)
@@ -416,7 +420,7 @@ class _Trainer:
                 value = self.graphed(batch)
             elif s.tbptt is None:
                 value = self.optimise(
-                    batch_loss(model, batch, self.start_fn, s.loss, s.skip_steps)
+                    batch_loss(model, batch, self.start_fn, s.loss, s.skip_steps, s.loss_weights)
                 )
             else:
                 value = self.truncated(batch)
@@ -454,7 +458,8 @@ class _Trainer:
             est, state = model(piece.measurements, inputs, state=state, return_state=True)
             skip = self.settings.skip_steps if i == 0 else 1  # a later piece's x_0 was counted
             loss = LOSSES[self.settings.loss](
-                model.group, est, piece.states.to(est), skip=skip, mask=piece.mask
+                model.group, est, piece.states.to(est), skip=skip, mask=piece.mask,
+                weights=self.settings.loss_weights,
             )
             value = self.optimise(loss)
             if not math.isfinite(value):

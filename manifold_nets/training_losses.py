@@ -36,13 +36,17 @@ def batch_loss(
     start: StartFn | None = None,
     loss: str = "mse",
     skip: int = 1,
+    weights=None,
 ) -> torch.Tensor:
     """The loss (:data:`LOSSES`; default the embedding MSE ``L``) of ``model`` rolled out over
     ``batch`` (its steps ``k < skip`` and those whose true state is unknown, ``batch.mask``
-    False, left out), started at ``start(batch)`` or the identity."""
+    False, left out), started at ``start(batch)`` or the identity; ``weights`` per embedding
+    coordinate (``train.loss_weights``, :mod:`manifold_nets.losses`)."""
     inputs = batch.inputs if batch.inputs.shape[-1] else None
     est = model(batch.measurements, inputs, state=initial_state(model, batch, start))
-    return LOSSES[loss](model.group, est, batch.states.to(est), skip=skip, mask=batch.mask)
+    return LOSSES[loss](
+        model.group, est, batch.states.to(est), skip=skip, mask=batch.mask, weights=weights
+    )
 
 
 def initial_state(
@@ -76,6 +80,7 @@ def validation_loss(
     start: StartFn | None = None,
     loss: str = "mse",
     skip: int = 1,
+    weights=None,
 ) -> float:
     """The loss (:data:`LOSSES`; default the embedding MSE ``L``) of ``model`` on ``data``,
     averaged over all its sequences (steps ``k < skip`` left out)."""
@@ -85,6 +90,6 @@ def validation_loss(
     n = len(data)
     for s in range(0, n, batch_size):
         idx = torch.arange(s, min(n, s + batch_size))
-        total += float(batch_loss(model, data[idx], start, loss, skip)) * len(idx)
+        total += float(batch_loss(model, data[idx], start, loss, skip, weights)) * len(idx)
     model.train(was)
     return total / n

@@ -12,6 +12,7 @@ import math
 import torch
 
 from .config import TrainSettings
+from .losses import check_loss_weights
 from .training_losses import LOSSES
 
 __all__ = ["SCHEDULES", "check_schedule", "check_settings", "learning_rate", "param_groups"]
@@ -99,6 +100,7 @@ def check_settings(settings: TrainSettings) -> TrainSettings:
         raise ValueError(
             f"loss={settings.loss!r} is not a training loss; choose one of {', '.join(LOSSES)}."
         )
+    check_loss_weights(settings.loss_weights)
     skip = settings.skip_steps
     if not _is_int(skip) or skip < 1:
         raise ValueError(

@@ -401,6 +401,11 @@ def test_train_copies_best_pt_atomically(tmp_path, monkeypatch):
     (["--heading-tau", "9", "--magnetometer", "0"], "--heading-tau corrects the heading from the "
      "magnetometer, and --magnetometer is 0"),
     (["--lr", "nan"], "--lr must be a finite number > 0, got nan."),
+    (["--loss-weights", "1,1,1"], "--loss-weights '1,1,1': loss_weights has 3 numbers; the "
+     "group's embedding has 9"),
+    (["--loss-weights", "0,0,0,0,0,0,1,1,x"], "--loss-weights '0,0,0,0,0,0,1,1,x': could not "
+     "convert string to float"),
+    (["--loss-weights", "0,0,0,0,0,0,0,0,0"], "must be finite numbers >= 0, not all 0"),
     (["--pretrain-sequences", "1"], "--pretrain-sequences must be 0 (no pre-training) or >= 2"),
     (["--window", "1000", "--decimation", "8"], "--window 1000 x --decimation 8 = 8000 samples: "
      "window=8000 is longer than every trial"),

@@ -245,7 +245,7 @@ def six_d_runs(tmp_path_factory):
               "4", "--mounting", "0"]  # fmt: skip
     train_cmd.main([*common, "--out", str(tmp / "r6"), "--magnetometer", "0",
                     "--acc-lowpass", "0.5", "--acc-lowpass-order", "2", "--rest-bias", "1",
-                    "--tilt-tau", "1.5"])  # fmt: skip
+                    "--tilt-tau", "1.5", "--loss-weights", "0,0,0,0,0,0,1,1,1"])  # fmt: skip
     train_cmd.main([*common, "--out", str(tmp / "r9")])
     return tmp, split
 
@@ -266,6 +266,10 @@ def test_a_6d_run_records_what_it_reads_and_is_scored_on_whole_trials(six_d_runs
                                         "acc_lowpass_order": 1, "rest_bias": False}
     res = json.loads((tmp / "r6" / "results" / "learned_test.json").read_text())
     assert math.isfinite(res["mean"]["inclination"])
+    # trained on the inclination alone (the loss's third row of R), recorded with the command
+    command = json.loads((tmp / "r6" / "command.json").read_text())
+    assert command["loss_weights"] == [0.0] * 6 + [1.0] * 3
+    assert json.loads((tmp / "r9" / "command.json").read_text())["loss_weights"] is None
     prior = load_observer(tmp / "r6")[0].signature()["prior"]
     assert (prior["type"], prior["tau"], prior["inner"]["type"]) == ("complementary", 1.5,
                                                                      "kinematic")  # fmt: skip

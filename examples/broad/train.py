@@ -47,6 +47,7 @@ from manifold_nets import TrainSettings, fit
 from manifold_nets.atomic import atomic_open, write_text_atomic
 from manifold_nets.checkpoint import load_weights, save_checkpoint
 from manifold_nets.destination import check_destination
+from manifold_nets.losses import check_loss_weights
 from manifold_nets.threads import use_threads
 from manifold_nets.training import check_settings
 
@@ -111,6 +112,11 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--heading-gate", type=int, choices=(0, 1), default=0,
                    help="1: the heading correction only where the magnetometer's strength and "
                         "dip are within 10 %% and 10 deg of the system's (learning.field_gate)")
+    p.add_argument("--loss-weights", default=None,
+                   help="9 comma-separated weights >= 0 of the loss's squared errors of R's "
+                        "entries, row by row (manifold_nets.losses); the third row is R^T e_z, "
+                        "'up' seen from the body: '0,0,0,0,0,0,1,1,1' scores the inclination "
+                        "alone (a 6-D observer's heading is unobservable); default: all 1")
     p.add_argument("--batch-size", type=int, default=32)
     p.add_argument("--lr", type=float, default=1e-3)
     p.add_argument("--start-std", type=float, default=0.05,
@@ -169,6 +175,7 @@ def check_args(args) -> None:
     if args.heading_gate and not args.heading_tau > 0:
         raise ValueError("--heading-gate 1 gates the heading correction, and --heading-tau is 0: "
                          "give --heading-tau (seconds, e.g. 10) or drop --heading-gate.")
+    args.loss_weights = loss_weights(args.loss_weights)
     if not (math.isfinite(args.start_std) and args.start_std >= 0):
         raise bad("--start-std", "a finite number >= 0 (radians)", args.start_std)
     if not 0 <= args.mounting <= math.pi:
@@ -179,11 +186,23 @@ def check_args(args) -> None:
                          "--init-from.")
 
 
+def loss_weights(text: str | list | None) -> list[float] | None:
+    """``--loss-weights``: ``None`` or 9 weights (:func:`manifold_nets.losses.check_loss_weights`,
+    one per entry of ``R``); ``ValueError`` naming the flag and the fix."""
+    if text is None or isinstance(text, list):
+        return check_loss_weights(text, 9)
+    try:
+        return check_loss_weights([float(w) for w in str(text).split(",")], 9)
+    except ValueError as err:
+        raise ValueError(f"--loss-weights {text!r}: {err} E.g. '0,0,0,0,0,0,1,1,1' (the "
+                         "inclination alone).") from None
+
+
 def settings(args, epochs: int) -> TrainSettings:
     return TrainSettings(
         epochs=epochs, batch_size=args.batch_size, lr=args.lr, weight_decay=0.01,
         schedule="cosine", lr_min=args.lr / 20, grad_clip=1.0, max_batches=args.max_batches,
-        eval_batch_size=64, threads=args.threads, tbptt=args.tbptt,
+        eval_batch_size=64, threads=args.threads, tbptt=args.tbptt, loss_weights=args.loss_weights,
     )
 
 
