@@ -141,3 +141,18 @@ def test_fit_trains_and_picks_best_on_the_weighted_loss(tmp_path, tbptt):
     assert res.history[0]["val_loss"] == before  # best.pt is picked on the weighted loss
     assert res.best_val_loss < before
     assert res.history[-1]["val_loss"] == pytest.approx(validation_loss(model, val, weights=UP))
+
+
+def test_the_train_command_takes_the_weights_from_the_config(tmp_path):
+    """``train.loss_weights`` through hydra: the rigid body's 18 coordinates (R's 9, then the three
+    vectors'); a list of another length is refused naming the embedding's size."""
+    from tests.observer_checks import run_tiny
+
+    weights = [0.0] * 9 + [1.0] * 9  # the vectors only
+    cfg = run_tiny("paper_cpu_prior", tmp_path, tmp_path / "run",
+                   f"train.loss_weights=[{','.join(map(str, weights))}]")
+    assert list(cfg.train.loss_weights) == weights
+    assert (tmp_path / "run" / "checkpoints" / "best.pt").exists()
+    with pytest.raises(ValueError, match="has 3 numbers; the group's embedding has 18"):
+        run_tiny("paper_cpu_prior", tmp_path, tmp_path / "bad", "train.loss_weights=[1,1,1]")
+    assert not (tmp_path / "bad" / "checkpoints" / "best.pt").exists()
