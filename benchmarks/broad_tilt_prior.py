@@ -39,8 +39,8 @@ from manifold_nets_examples.broad.simulator import BROAD_DT, BroadSimulator  # n
 
 
 def rows(trials, taus, lowpasses, order: int = 1) -> list[dict]:
-    # the readings pre-filtered here (the filter's order is not a system setting), so the
-    # system passes them on as they are
+    # the readings pre-filtered here, once per low-pass for every tau, so the system (without
+    # filters of its own) passes them on as they are
     system = BroadSimulator(dt=8 * BROAD_DT)
     out = []
     for lowpass in lowpasses:

@@ -35,7 +35,7 @@ from manifold_nets.observer import ReadingsFilter
 from manifold_nets.system import check_number
 
 from .data import G0
-from .prefilter import butterworth2, butterworth2_at_rest
+from .prefilter import butterworth2, butterworth2_at_rest, check_order
 
 __all__ = ["ImuPrefilter", "MAX_WINDOW"]
 
@@ -72,10 +72,7 @@ class ImuPrefilter(ReadingsFilter):
                  th_gyr: float = math.radians(2.0), th_acc: float = 0.5,
                  th_mean: float = math.radians(1.0), g0: float = G0, order: int = 1):
         super().__init__(measurement_dim=6, input_dim=3)
-        if isinstance(order, bool) or order not in (1, 2):
-            raise ValueError(f"ImuPrefilter: order must be 1 (first order) or 2 (VQF's "
-                             f"Butterworth filter), got {order!r}.")
-        self.order = order
+        self.order = check_order(order, "ImuPrefilter")
         self.rate, self.tau = _positive("rate", rate), _positive("tau", tau, zero=True)
         for what, flag in (("rest", rest), ("magnetometer", magnetometer)):
             if not isinstance(flag, bool):

@@ -33,8 +33,8 @@ input:
 with the cutoff ``sqrt(2) / (2 pi tau)`` Hz (:func:`butterworth2`), also started at rest on
 ``a^I_0``. Under a correction that follows it closely it gives VQF's tilt: the complementary
 prior alone (``benchmarks/broad_tilt_prior.py --order 2``) reaches VQF's inclination on the
-training trials. The learned observers are trained on the first-order filter (the learned tilt
-over the second did not lower the cross-validated total: ``docs/real_data.md``).
+training trials; the zoo's ``broad/attitude`` reads the accelerometer through it
+(``docs/real_data.md``).
 
 At rest ``acc' = acc``; under linear acceleration of zero mean over ``tau`` seconds ``acc'`` is
 gravity, turned by at most the gyroscope's bias over ``tau`` (about ``0.23 tau`` deg here
@@ -58,8 +58,8 @@ from scipy.signal import lfilter, lfilter_zi
 from groups import SO3
 
 __all__ = [
-    "rest_bias", "strapdown", "butterworth2", "butterworth2_at_rest", "lowpass_acc", "prefiltered",
-    "prefilter_dataset", "OnlinePrefilter",
+    "rest_bias", "strapdown", "butterworth2", "butterworth2_at_rest", "check_order", "lowpass_acc",
+    "prefiltered", "prefilter_dataset", "OnlinePrefilter",
 ]
 
 _SO3 = SO3()
@@ -118,6 +118,15 @@ def butterworth2(rate: float, tau: float) -> tuple[list[float], list[float]]:
             [1.0, 2.0 * (k * k - 1.0) * n, (1.0 - math.sqrt(2.0) * k + k * k) * n])
 
 
+def check_order(order, owner: str = "the low-pass") -> int:
+    """``order`` (1: the first-order low-pass, 2: VQF's second-order Butterworth filter), or a
+    ``ValueError`` naming ``owner`` and the choices."""
+    if isinstance(order, bool) or order not in (1, 2):
+        raise ValueError(f"{owner}: order must be 1 (first order) or 2 (VQF's second-order "
+                         f"Butterworth filter), got {order!r}.")
+    return int(order)
+
+
 def butterworth2_at_rest(ba, a):
     """The two state values (direct form II transposed) of :func:`butterworth2`'s filter ``ba``
     at rest on ``a``: the filter started there outputs ``a`` for as long as ``a`` holds (numpy
@@ -134,9 +143,7 @@ def lowpass_acc(
     (:func:`butterworth2`), started at rest on ``a^I_0`` like the first."""
     if not (math.isfinite(tau) and tau >= 0):
         raise ValueError(f"the low-pass time constant must be a finite number >= 0 s, got {tau!r}.")
-    if order not in (1, 2):
-        raise ValueError(f"the low-pass order must be 1 (first order) or 2 (VQF's Butterworth), "
-                         f"got {order!r}.")
+    check_order(order)
     if tau == 0:
         return np.asarray(acc, dtype=np.float64)
     dt = 1.0 / rate
@@ -190,11 +197,7 @@ class OnlinePrefilter:
     def __init__(self, rate: float, tau: float = 0.0, rest: bool = False, window: float = 1.5,
                  order: int = 1):
         self.rate, self.tau, self.rest = float(rate), float(tau), bool(rest)
-        if order not in (1, 2):
-            raise ValueError(f"the low-pass order must be 1 (first order) or 2 (VQF's "
-                             f"Butterworth), got {order!r}.")
-        self.order = order
-        self.ba = butterworth2(self.rate, self.tau) if order == 2 and tau else None
+        self.ba = butterworth2(self.rate, self.tau) if check_order(order) == 2 and tau else None
         self.z = None  # the second-order filter's state (direct form II transposed)
         self.n = max(2, round(window * rate))
         self.buf = np.zeros((self.n, 3, 3))  # gyr, gyr^2, acc per sample
