@@ -7,7 +7,8 @@
 
 It checks, in float32 and float64 and over several batch shapes, every law a group must keep
 (membership, identity, inverse, associativity, ``exp``/``log``, ``exp`` against ``matrix_exp``,
-the adjoint, the embedding, ``rplus``/``rminus``, finite gradients at angles 0 and pi,
+the adjoint, the embedding, ``rplus``/``rminus``, the barycentre ``mean``, finite gradients at
+angles 0 and pi,
 ``gradcheck``, batched equals looped, broadcasting) on adversarial inputs. Four layers, each a
 module, each importing only the ones before it:
 
@@ -51,6 +52,7 @@ from .runner import (
     check_matrix_compose,
     check_membership,
     check_rplus_rminus,
+    check_mean,
 )
 from .strategies import (
     ADVERSARIAL_ANGLES,
@@ -87,6 +89,7 @@ __all__ = [
     "check_adjoint",
     "check_embedding",
     "check_rplus_rminus",
+    "check_mean",
     "check_gradients_finite",
     "check_gradcheck",
     "check_batched_vs_looped",

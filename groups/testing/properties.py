@@ -32,6 +32,7 @@ __all__ = [
     "adjoint",
     "embedding",
     "rplus_rminus",
+    "mean",
     "gradients_finite",
     "gradcheck",
     "batched_vs_looped",
@@ -313,6 +314,33 @@ def rplus_rminus(c: Case, data) -> None:
             trailing=0, inputs=ins)
 
 
+def _spread(v: torch.Tensor, radius: float = 0.1) -> torch.Tensor:
+    """``v`` shrunk to norm at most ``radius``: elements ``x · exp(v)`` near ``x``, where the
+    default four iterations of ``mean`` reach float64's precision (wider spreads need more)."""
+    norm = torch.linalg.vector_norm(v, dim=-1, keepdim=True)
+    return v * (radius / norm.clamp_min(radius))
+
+
+def mean(c: Case, data) -> None:
+    """``mean`` of three elements near ``x`` is their barycentre (``sum_i log(m^-1 x_i) == 0``),
+    of three copies of ``x`` is ``x``, and is equivariant: ``mean(g x_i) == g mean(x_i)``."""
+    G = c.group
+    x, g = c.x(data, "x"), c.x(data, "g")
+    xs = G.rplus(x.unsqueeze(0), torch.stack([_spread(c.v(data, f"v{i}")) for i in range(3)]))
+    m = G.mean(xs, 0)
+    c.shape("mean(x_i)", m, tuple(G.element_shape))
+    sx = element_magnitude(G, x) * element_magnitude(G, G.inverse(x))
+    ins = {"x": x}
+    residual = G.rminus(xs, m.unsqueeze(0)).mean(0)
+    c.close_tangent("mean(x_i) = m with sum_i log(m^-1 x_i) == 0", residual,
+                    torch.zeros_like(residual), scale=sx, inputs=ins)
+    c.close_elements("mean([x, x, x]) == x", G.mean(torch.stack([x, x, x]), 0), x, scale=sx,
+                     inputs=ins)
+    sg = element_magnitude(G, g) * element_magnitude(G, G.inverse(g)) * sx
+    c.close_elements("mean(g x_i) == g mean(x_i)", G.mean(G.compose(g.unsqueeze(0), xs), 0),
+                     G.compose(g, m), scale=sg, inputs={"x": x, "g": g})
+
+
 def gradients_finite(c: Case, data) -> None:
     """No NaN/Inf in the gradients of ``exp``, ``log(exp(v))`` and ``embed(rplus(x, v))``."""
     G = c.group
@@ -453,6 +481,7 @@ PROPERTIES: dict[str, Callable[[Case, object], None]] = {
     "adjoint": adjoint,
     "embedding": embedding,
     "rplus_rminus": rplus_rminus,
+    "mean": mean,
     "gradients_finite": gradients_finite,
     "gradcheck": gradcheck,
     "batched_vs_looped": batched_vs_looped,

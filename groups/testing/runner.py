@@ -210,6 +210,13 @@ def check_rplus_rminus(
     return run_property("rplus_rminus", group, dtype=dtype, batch_shape=batch_shape, **options)
 
 
+def check_mean(
+    group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
+) -> CheckResult:
+    """``mean`` is the barycentre of elements near each other, idempotent and equivariant."""
+    return run_property("mean", group, dtype=dtype, batch_shape=batch_shape, **options)
+
+
 def check_gradients_finite(
     group: LieGroup, dtype: torch.dtype = torch.float64, batch_shape: Sequence[int] = (), **options
 ) -> CheckResult:
@@ -255,6 +262,7 @@ CHECKS: dict[str, Callable[..., CheckResult]] = {
     "adjoint": check_adjoint,
     "embedding": check_embedding,
     "rplus_rminus": check_rplus_rminus,
+    "mean": check_mean,
     "gradients_finite": check_gradients_finite,
     "gradcheck": check_gradcheck,
     "batched_vs_looped": check_batched_vs_looped,
