@@ -13,12 +13,14 @@ step scales             :class:`OutputScale`, :class:`StepDecay`, :class:`Projec
 a covariance            :class:`CovarianceReadout`, :class:`CalibratedObserver`
 a readings pre-filter   :class:`ReadingsFilter`, :class:`FilteredObserver`,
                         :func:`with_readings_filter`
+an ensemble of seeds    :class:`EnsembleObserver` (the members' barycentre on the group)
 your own piece          subclass :class:`Prior`, :class:`Feature`, :class:`Head` or
                         :class:`StepScale` with a ``name``: a config may then name it
 ======================  ====================================================================
 """
 
 from .covariance import CalibratedObserver, CovarianceReadout
+from .ensemble import EnsembleObserver, EnsembleState, EnsembleStep
 from .features import Embedding, Feature, FramedInnovation, Innovation, Readings, Rotated
 from .filtered import FilteredObserver, FilteredState, with_readings_filter
 from .heads import CentredHead, GainHead, Head, PlainHead
@@ -48,4 +50,5 @@ __all__ = [
     "StepScale", "OutputScale", "StepDecay", "Projection", "RobustWeights",
     "CovarianceReadout", "CalibratedObserver",
     "ReadingsFilter", "FilteredObserver", "FilteredState", "with_readings_filter",
+    "EnsembleObserver", "EnsembleState", "EnsembleStep",
 ]

@@ -41,7 +41,9 @@ class Piece(nn.Module):
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
-        if cls.name:
+        # only a class that names itself: not a subclass that inherits the name (torch.export's
+        # tracer subclasses a module it reaches by two paths; it must not replace the piece)
+        if cls.__dict__.get("name"):
             PIECES[(cls.kind, cls.name)] = cls
 
     def bind(self, group, measurement) -> Piece:  # noqa: ARG002

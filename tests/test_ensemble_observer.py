@@ -1,0 +1,119 @@
+"""EnsembleObserver: the members' barycentre at every step, the same online, in pieces and exported;
+one member is that member; members behind their readings filter; its refusals."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from groups import SE3, SO3, Euclidean, Product
+from manifold_nets.observer import PIECES, EnsembleObserver, PlainHead, ResidualObserver
+from observer_checks import assert_pieces_and_export_match, randomise_head, so3_walk
+
+
+def _members(group, width: int, k: int, seed: int = 0) -> list[ResidualObserver]:
+    out = []
+    for i in range(k):
+        torch.manual_seed(seed + i)
+        obs = ResidualObserver(group, width, core=None).eval()
+        randomise_head(obs, seed=seed + i, scale=0.3)
+        out.append(obs)
+    return out
+
+
+def _walk(group, n: int = 2, t: int = 12, seed: int = 0) -> torch.Tensor:
+    g = torch.Generator().manual_seed(seed)
+    x = group.random((n,), generator=g, dtype=torch.float64)
+    out = []
+    for _ in range(t):
+        x = group.rplus(x, 0.1 * torch.randn(n, group.tangent_dim, generator=g, dtype=torch.float64))
+        out.append(group.embed(x))
+    return torch.stack(out, 1)
+
+
+@pytest.mark.parametrize("group", [SO3(), SE3(), Product(SO3(), Euclidean(3))], ids=repr)
+def test_rollout_is_the_members_barycentre(group):
+    members = _members(group, group.embedding_dim, 3)
+    y = _walk(group)
+    ens = EnsembleObserver(members)
+    with torch.no_grad():
+        got = ens(y)
+        each = torch.stack([m(y) for m in members])
+    torch.testing.assert_close(got, group.mean(each, 0), rtol=0, atol=0)
+    spread = group.rminus(each, got.unsqueeze(0)).norm(dim=-1)
+    assert spread.max() > 1e-3  # the members differ: the test can tell a mean from a member
+    residual = group.rminus(each, got.unsqueeze(0)).mean(0).norm(dim=-1)
+    assert residual.max() < 1e-10  # the barycentre condition
+
+
+def test_online_pieces_and_export_match_the_rollout(tmp_path):
+    """Also: exporting leaves the registry of pieces as it was (torch.export's tracer subclasses
+    a module it reaches by two paths; such a subclass once replaced the piece, and a config
+    loaded afterwards in the same process failed)."""
+    before = dict(PIECES)
+    ens = EnsembleObserver(_members(SO3(), 9, 3))
+    assert_pieces_and_export_match(ens, so3_walk(2, 10, seed=1).measurements, tmp_path)
+    assert PIECES == before
+
+
+def test_a_subclass_that_does_not_name_itself_is_not_registered():
+    before = dict(PIECES)
+
+    class Quieter(PlainHead):  # inherits the name "plain"
+        pass
+
+    assert PIECES == before and PIECES["head", "plain"] is PlainHead
+
+
+def test_one_member_is_that_member():
+    (member,) = _members(SO3(), 9, 1)
+    y = so3_walk(2, 10, seed=2).measurements
+    with torch.no_grad():
+        torch.testing.assert_close(EnsembleObserver([member])(y), member(y), rtol=0, atol=0)
+
+
+def test_a_measured_start_starts_every_member_there():
+    members = _members(SO3(), 9, 2)
+    ens = EnsembleObserver(members)
+    x0 = SO3().random((2,), generator=torch.Generator().manual_seed(3), dtype=torch.float64)
+    y = so3_walk(2, 6, seed=3).measurements
+    with torch.no_grad():
+        got = ens(y, state=ens.init_state(2, estimate=x0))
+        each = [m(y, state=m.init_state(2)._replace(estimate=x0)) for m in members]
+    torch.testing.assert_close(got[:, 0], x0)
+    torch.testing.assert_close(got, SO3().mean(torch.stack(each), 0), rtol=0, atol=0)
+
+
+def test_members_behind_their_readings_filter(tmp_path):
+    """The zoo's BROAD observer behind its pre-filter, twice: the ensemble is that observer,
+    online and exported as well."""
+    from manifold_nets import load_observer
+
+    filtered = load_observer("zoo:broad/attitude").filtered()
+    ens = EnsembleObserver([filtered, filtered])
+    g = torch.Generator().manual_seed(4)
+    y = torch.randn(2, 30, filtered.measurement_dim, generator=g, dtype=torch.float64)
+    u = torch.randn(2, 30, filtered.input_dim, generator=g, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(ens(y, u), filtered(y, u), rtol=0, atol=1e-12)
+        state = ens.init_state(2)
+        for k in range(30):
+            state = ens.step(state, y[:, k], u[:, k])
+    torch.testing.assert_close(state.estimate, filtered(y, u)[:, -1], rtol=0, atol=1e-10)
+
+
+def test_refusals():
+    so3, se3 = _members(SO3(), 9, 1)[0], _members(SE3(), 12, 1)[0]
+    with pytest.raises(ValueError, match="non-empty list of observers"):
+        EnsembleObserver([])
+    with pytest.raises(TypeError, match="member 1 is a Linear"):
+        EnsembleObserver([so3, torch.nn.Linear(2, 2)])
+    with pytest.raises(ValueError, match="member 1's group is SE3"):
+        EnsembleObserver([so3, se3])
+    with pytest.raises(ValueError, match="member 1's measurement_dim is 3"):
+        EnsembleObserver([so3, ResidualObserver(SO3(), 3)])
+    with pytest.raises(ValueError, match="iterations must be an int >= 1"):
+        EnsembleObserver([so3], iterations=0)
+    ens = EnsembleObserver([so3, so3])
+    with pytest.raises(ValueError, match="state holds 1 member states; the ensemble has 2"):
+        ens.step(EnsembleObserver([so3]).init_state(1), torch.zeros(1, 9, dtype=torch.float64))
