@@ -67,6 +67,7 @@ def learned_stream(run: str, x0=None):
     from manifold_nets_examples.broad.data import G0, M0
 
     from manifold_nets_examples.broad.evaluate import input_settings
+    from manifold_nets_examples.broad.learning import started
 
     observer, system, _ = load_observer(run)
     observer.eval()
@@ -86,7 +87,7 @@ def learned_stream(run: str, x0=None):
                          dtype=torch.float32)[None]
         if st["state"] is None:  # TRIAD of the first sample (its gyro is not integrated)
             start = system.state_from_measurement(y.double()) if x0 is None else x0
-            st["state"] = _with_estimate(observer, start)
+            st["state"] = started(observer, start)
             st["R"] = start[0].numpy()
             return st["R"]
         st["block"] = st["block"] @ inc
@@ -99,12 +100,6 @@ def learned_stream(run: str, x0=None):
         return st["R"]
 
     return feed, observer
-
-
-def _with_estimate(observer, x0):
-    from manifold_nets.observer import ObserverState
-
-    return ObserverState(x0.to(observer.state_dtype), observer.core.initial_hidden(1))
 
 
 def check(run: str, trial, n: int) -> float:

@@ -25,6 +25,10 @@ A file from elsewhere is data, not code. What it may make happen:
   rules, measurement, pieces, core) is checked against the rebuilt observer
   (:func:`manifold_nets.checkpoint.check_signature`).
 
+An ensemble folder (``members/<name>/``, each a run folder; :func:`ensemble_members`) loads
+member by member as above; its members are real folders inside ``members/`` (no link), at most
+:data:`MAX_MEMBERS`, of one system.
+
 Nothing named by the file is imported or called otherwise; an unknown name is an error that says
 to import the module defining it first. Not checked: that the system's parameters describe the
 system the data came from (they are the run's), nor anything about the estimates.
@@ -50,7 +54,7 @@ from .system import SYSTEMS, System
 
 __all__ = [
     "LoadedObserver", "ArtefactError", "LIMITS", "check_sizes", "load_observer",
-    "build_system_safely",
+    "build_system_safely", "ensemble_members", "MAX_MEMBERS",
 ]
 
 
@@ -61,7 +65,8 @@ class ArtefactError(ValueError):
 class LoadedObserver(NamedTuple):
     """What :func:`load_observer` returns (unpacks as ``observer, system, config``)."""
 
-    #: The trained observer, its best weights loaded, in eval mode, on ``map_location``.
+    #: The trained observer, its best weights loaded, in eval mode, on ``map_location`` (an
+    #: :class:`~manifold_nets.observer.EnsembleObserver` from an ensemble folder).
     observer: ResidualObserver
     #: The system it was trained on, built from the run's ``system`` config.
     system: System
@@ -237,7 +242,9 @@ def load_observer(
     ``checkpoints/best.pt``) or a checkpoint file (its ``config`` entry); see the module
     docstring for what is checked and what never runs.
 
-    ``path`` may be a zoo entry, ``zoo:rigid_body/nominal``. The system class
+    ``path`` may be a zoo entry, ``zoo:rigid_body/nominal``, or an ensemble folder (its run
+    folders under ``members/``, :func:`ensemble_members`): the observer is then an
+    :class:`~manifold_nets.observer.EnsembleObserver` of theirs. The system class
     (``system._target_``) and a core other than ``gru`` must have been imported by the program or
     be declared by an installed package (:mod:`manifold_nets.plugins`); the project's own example
     systems are.
@@ -246,6 +253,9 @@ def load_observer(
         path = locate(path)
     except ValueError as err:
         raise ArtefactError(str(err)) from None
+    members = ensemble_members(path)
+    if members is not None:
+        return _load_ensemble(path, members, map_location)
     raw, ckpt_file, ckpt = _read_config(path)
     where = str(path / "config.yaml" if path.is_dir() and ckpt is None else ckpt_file)
     if not isinstance(raw, dict) or "system" not in raw:
@@ -268,3 +278,47 @@ def load_observer(
         )
     load_state(model, {**ckpt, "model": observer_state(model, ckpt, ckpt_file)}, ckpt_file)
     return LoadedObserver(model.to(map_location).eval(), system, cfg)
+
+
+#: The most members an ensemble folder may hold (a file must not make the loader build without
+#: bound).
+MAX_MEMBERS = 16
+
+
+def ensemble_members(path: Path) -> list[Path] | None:
+    """The member run folders of an ensemble folder (``<path>/members/<name>/``, by name), or
+    ``None`` when ``path`` is not one (a run folder, a checkpoint). ``ArtefactError`` for an
+    empty ``members/``, more than :data:`MAX_MEMBERS`, a member that is a link or not a folder,
+    or a ``config.yaml`` beside ``members/`` (one folder, one observer)."""
+    folder = Path(path) / "members"
+    if not folder.is_dir():
+        return None
+    if (Path(path) / "config.yaml").exists():
+        raise ArtefactError(f"{path} holds both a config.yaml and members/: a run folder or an "
+                            "ensemble folder, not both.")
+    members = sorted(folder.iterdir(), key=lambda p: p.name)
+    if not members or len(members) > MAX_MEMBERS:
+        raise ArtefactError(f"{folder} holds {len(members)} entries; an ensemble folder holds 1 "
+                            f"to {MAX_MEMBERS} member run folders.")
+    for m in members:
+        if m.is_symlink() or not m.is_dir():
+            raise ArtefactError(f"{m} is not a run folder (a link or a file); an ensemble's "
+                                "members are run folders inside members/ itself.")
+    return members
+
+
+def _load_ensemble(path: Path, members: list[Path], map_location) -> LoadedObserver:
+    """An ensemble folder's members loaded, one system: their ensemble, the first's config."""
+    from .observer import EnsembleObserver
+
+    loaded = [load_observer(m, map_location) for m in members]
+    first = OmegaConf.to_container(loaded[0].config.system)
+    for m, one in zip(members[1:], loaded[1:]):
+        if OmegaConf.to_container(one.config.system) != first:
+            raise ArtefactError(f"{m}'s system differs from {members[0]}'s: an ensemble's members "
+                                "observe one system.")
+    try:
+        ensemble = EnsembleObserver([one.observer for one in loaded])
+    except (TypeError, ValueError) as err:
+        raise ArtefactError(f"{path}: {err}") from None
+    return LoadedObserver(ensemble.eval(), loaded[0].system, loaded[0].config)

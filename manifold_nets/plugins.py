@@ -54,8 +54,13 @@ def zoo_entries() -> list[str]:
     for key, module in _zoo_packages().items():
         folder = _folder(module)
         if folder is not None and (folder / "zoo").is_dir():
-            out += [f"{key}/{p.name}" for p in (folder / "zoo").iterdir() if (p / "config.yaml").is_file()]
+            out += [f"{key}/{p.name}" for p in (folder / "zoo").iterdir() if _is_entry(p)]
     return sorted(out)
+
+
+def _is_entry(path: Path) -> bool:
+    """A zoo entry's folder: a run folder (``config.yaml``) or an ensemble folder (``members/``)."""
+    return (path / "config.yaml").is_file() or (path / "members").is_dir()
 
 
 def _folder(module: str) -> Path | None:
@@ -72,7 +77,7 @@ def zoo_path(name: str) -> Path:
     module = _zoo_packages().get(key)
     folder = _folder(module) if module else None
     path = None if folder is None or not entry else folder / "zoo" / entry
-    if path is None or "/" in entry or entry.startswith(".") or not (path / "config.yaml").is_file():
+    if path is None or "/" in entry or entry.startswith(".") or not _is_entry(path):
         raise ValueError(
             f"{ZOO_PREFIX}{name} is not an installed zoo entry; the entries are "
             f"{zoo_entries() or 'none (is manifold_nets installed with its examples?)'}."

@@ -102,6 +102,32 @@ def test_members_behind_their_readings_filter(tmp_path):
     torch.testing.assert_close(state.estimate, filtered(y, u)[:, -1], rtol=0, atol=1e-10)
 
 
+def test_an_ensemble_behind_one_readings_filter(tmp_path):
+    """The filter runs once, in front of the ensemble: the same estimates as the members each
+    behind their own filter; online and exported alike."""
+    from manifold_nets import load_observer
+    from manifold_nets.observer import FilteredObserver
+
+    loaded = load_observer("zoo:broad/attitude")
+    member = loaded.filtered()
+    ens = FilteredObserver(member.prefilter, EnsembleObserver([loaded.observer, loaded.observer]))
+    g = torch.Generator().manual_seed(5)
+    y = torch.randn(2, 20, member.measurement_dim, generator=g, dtype=torch.float64)
+    u = torch.randn(2, 20, member.input_dim, generator=g, dtype=torch.float64)
+    with torch.no_grad():
+        want = member(y, u)
+        torch.testing.assert_close(ens(y, u), want, rtol=0, atol=1e-12)
+    from manifold_nets import export_observer
+    from manifold_nets.deploy import load_exported_step
+
+    export_observer(ens, tmp_path / "ens.pt2")
+    step = load_exported_step(tmp_path / "ens.pt2")
+    x, *state = step.initial_state(2)
+    for k in range(20):
+        x, *state = step(x, *state, y[:, k], u[:, k])
+    torch.testing.assert_close(x, want[:, -1].reshape(2, -1), rtol=0, atol=1e-10)
+
+
 def test_refusals():
     so3, se3 = _members(SO3(), 9, 1)[0], _members(SE3(), 12, 1)[0]
     with pytest.raises(ValueError, match="non-empty list of observers"):
@@ -117,3 +143,64 @@ def test_refusals():
     ens = EnsembleObserver([so3, so3])
     with pytest.raises(ValueError, match="state holds 1 member states; the ensemble has 2"):
         ens.step(EnsembleObserver([so3]).init_state(1), torch.zeros(1, 9, dtype=torch.float64))
+
+
+def _ensemble_folder(root, names=("seed0", "seed1")):
+    """An ensemble folder of copies of the zoo's BROAD observer."""
+    import shutil
+
+    from manifold_nets.plugins import zoo_path
+
+    src = zoo_path("broad/attitude")
+    for name in names:
+        dst = root / "members" / name
+        (dst / "checkpoints").mkdir(parents=True)
+        shutil.copy(src / "config.yaml", dst / "config.yaml")
+        shutil.copy(src / "checkpoints" / "best.pt", dst / "checkpoints" / "best.pt")
+    return root
+
+
+def test_an_ensemble_folder_loads_as_an_ensemble(tmp_path):
+    from manifold_nets import load_observer
+
+    loaded = load_observer(_ensemble_folder(tmp_path / "ens"))
+    assert isinstance(loaded.observer, EnsembleObserver) and len(loaded.observer.members) == 2
+    single = load_observer("zoo:broad/attitude")
+    g = torch.Generator().manual_seed(6)
+    y = torch.randn(1, 15, single.observer.measurement_dim, generator=g, dtype=torch.float64)
+    u = torch.randn(1, 15, single.observer.input_dim, generator=g, dtype=torch.float64)
+    with torch.no_grad():
+        torch.testing.assert_close(loaded.filtered()(y, u), single.filtered()(y, u), rtol=0,
+                                   atol=1e-12)
+
+
+def test_an_ensemble_folder_is_checked_before_anything_loads(tmp_path):
+    import yaml
+
+    from manifold_nets import load_observer
+    from manifold_nets.loading import MAX_MEMBERS, ArtefactError
+
+    empty = tmp_path / "empty"
+    (empty / "members").mkdir(parents=True)
+    with pytest.raises(ArtefactError, match="holds 0 entries"):
+        load_observer(empty)
+    both = _ensemble_folder(tmp_path / "both")
+    (both / "config.yaml").write_text("system: {}\n")
+    with pytest.raises(ArtefactError, match="both a config.yaml and members/"):
+        load_observer(both)
+    linked = _ensemble_folder(tmp_path / "linked")
+    (linked / "members" / "seed2").symlink_to(linked / "members" / "seed0")
+    with pytest.raises(ArtefactError, match="is not a run folder"):
+        load_observer(linked)
+    many = tmp_path / "many" / "members"
+    for i in range(MAX_MEMBERS + 1):
+        (many / f"m{i:02d}").mkdir(parents=True)
+    with pytest.raises(ArtefactError, match=f"holds {MAX_MEMBERS + 1} entries"):
+        load_observer(many.parent)
+    other = _ensemble_folder(tmp_path / "other")
+    cfg_file = other / "members" / "seed1" / "config.yaml"
+    cfg = yaml.safe_load(cfg_file.read_text())
+    cfg["system"]["acc_lowpass"] = 3.0
+    cfg_file.write_text(yaml.safe_dump(cfg))
+    with pytest.raises(ArtefactError, match="seed1's system differs from"):
+        load_observer(other)

@@ -50,7 +50,9 @@ from manifold_nets.covariance_training import (
     scale_to_share,
     step_nees,
 )
-from manifold_nets.observer import CalibratedObserver, CovarianceReadout, ObserverState
+from manifold_nets.observer import (
+    CalibratedObserver, CovarianceReadout, EnsembleObserver, ObserverState,
+)
 from manifold_nets.observer.covariance import input_width
 from manifold_nets.threads import use_threads
 
@@ -188,6 +190,12 @@ def main(argv=None) -> None:
     data_dir, split = split_trials(None)
     data_dir = args.data_dir or data_dir
     observer, system, _ = load_observer(args.observer)
+    if isinstance(observer, EnsembleObserver):
+        raise ValueError(
+            f"--observer {args.observer} is an ensemble of {len(observer.members)} observers; a "
+            "covariance readout reads one observer's core: give one member's run folder "
+            "(members/<name> inside it)."
+        )
     start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
     if args.fit == "cv":  # the training and validation trials come through the folds' runs
         parts = _cross_fitted(args, observer)

@@ -49,7 +49,7 @@ from groups import SO3
 from manifold_nets.builders import build_observer
 from manifold_nets.config import ModelConfig
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.observer import ObserverState, ResidualObserver
+from manifold_nets.observer import EnsembleObserver, ResidualObserver
 
 from .data import M0
 from .simulator import BroadSimulator
@@ -61,6 +61,7 @@ __all__ = [
     "near_truth_start",
     "RandomMounting",
     "RandomHeading",
+    "started",
     "estimate_rotations",
     "tilt",
     "tilt_start",
@@ -233,9 +234,17 @@ class RandomHeading:
         return TrajectoryDataset(states, batch.measurements, batch.inputs, batch.meta, batch.mask)
 
 
+def started(observer: ResidualObserver | EnsembleObserver, x0: torch.Tensor):
+    """``observer``'s state at the estimate ``x0`` ``(N, 3, 3)`` with a fresh core (every
+    member at ``x0`` with its own, for an ensemble)."""
+    if isinstance(observer, EnsembleObserver):
+        return observer.init_state(len(x0), x0.device, estimate=x0)
+    return observer.init_state(len(x0), x0.device)._replace(estimate=x0.to(observer.state_dtype))
+
+
 @torch.inference_mode()
 def estimate_rotations(
-    observer: ResidualObserver, system: BroadSimulator, data: TrajectoryDataset,
+    observer: ResidualObserver | EnsembleObserver, system: BroadSimulator, data: TrajectoryDataset,
     magnetometer: bool = True,
 ) -> torch.Tensor:
     """The observer over whole sequences from their first sample: ``(N, T+1, 3, 3)`` float64.
@@ -248,6 +257,5 @@ def estimate_rotations(
         data = without_magnetometer(data)
     first = measured_start(system) if magnetometer else tilt_start(system)
     x0 = first(data).to(device=observer.device, dtype=observer.state_dtype)
-    state = ObserverState(x0, observer.core.initial_hidden(len(data), device=observer.device))
-    est = observer(data.measurements, data.inputs, state=state)
+    est = observer(data.measurements, data.inputs, state=started(observer, x0))
     return est.cpu().to(torch.float64)

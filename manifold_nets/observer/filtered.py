@@ -50,15 +50,19 @@ class FilteredObserver(nn.Module):
 
     Args:
         prefilter: the :class:`ReadingsFilter` (its widths those of the observer's readings).
-        observer: the :class:`ResidualObserver` trained on filtered readings.
+        observer: the :class:`ResidualObserver` trained on filtered readings (or an
+            :class:`~manifold_nets.observer.EnsembleObserver` of such: the filter runs once).
         dtype: the filter's dtype (default: the observer's state dtype).
     """
 
     def __init__(self, prefilter: ReadingsFilter, observer: ResidualObserver,
                  dtype: torch.dtype | None = None):
         super().__init__()
-        if not isinstance(observer, ResidualObserver):
-            raise TypeError(f"observer must be a ResidualObserver, got {type(observer).__name__}.")
+        from .ensemble import EnsembleObserver  # it imports this module
+
+        if not isinstance(observer, (ResidualObserver, EnsembleObserver)):
+            raise TypeError(f"observer must be a ResidualObserver or an EnsembleObserver, got "
+                            f"{type(observer).__name__}.")
         if not isinstance(prefilter, ReadingsFilter):
             raise TypeError(
                 f"prefilter must be a ReadingsFilter (manifold_nets.observer.readings_filter), got "
