@@ -8,8 +8,7 @@
 It checks, in float32 and float64 and over several batch shapes, every law a group must keep
 (membership, identity, inverse, associativity, ``exp``/``log``, ``exp`` against ``matrix_exp``,
 the adjoint, the embedding, ``rplus``/``rminus``, the barycentre ``mean``, finite gradients at
-angles 0 and pi,
-``gradcheck``, batched equals looped, broadcasting) on adversarial inputs. Four layers, each a
+angles 0 and pi, ``gradcheck``, batched equals looped, broadcasting) on adversarial inputs. Four layers, each a
 module, each importing only the ones before it:
 
 * :mod:`~groups.testing.strategies`: the inputs (hypothesis strategies, the adversarial angles
