@@ -222,6 +222,11 @@ def resolve_checkpoint(path: str | os.PathLike, name: str = "last.pt") -> Path:
         for cand in (p / "checkpoints" / name, p / name):
             if cand.is_file():
                 return cand
+        if (p / "members").is_dir():
+            raise CheckpointError(
+                f"{path} is an ensemble folder (one run folder per member under members/), not one "
+                f"checkpoint: name one member, e.g. {p / 'members' / '<name>'}."
+            )
         raise CheckpointError(f"no {name} in the run folder {p} (looked in {p}/checkpoints/).")
     return p
 

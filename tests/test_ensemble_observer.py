@@ -21,6 +21,14 @@ def _members(group, width: int, k: int, seed: int = 0) -> list[ResidualObserver]
     return out
 
 
+def _broad_member():
+    """One observer of the zoo's BROAD ensemble: its first member's run folder."""
+    from manifold_nets.loading import ensemble_members
+    from manifold_nets.plugins import zoo_path
+
+    return ensemble_members(zoo_path("broad/attitude"))[0]
+
+
 def _walk(group, n: int = 2, t: int = 12, seed: int = 0) -> torch.Tensor:
     g = torch.Generator().manual_seed(seed)
     x = group.random((n,), generator=g, dtype=torch.float64)
@@ -85,11 +93,11 @@ def test_a_measured_start_starts_every_member_there():
 
 
 def test_members_behind_their_readings_filter(tmp_path):
-    """The zoo's BROAD observer behind its pre-filter, twice: the ensemble is that observer,
-    online and exported as well."""
+    """One BROAD observer behind its pre-filter, twice: the ensemble is that observer, online as
+    well."""
     from manifold_nets import load_observer
 
-    filtered = load_observer("zoo:broad/attitude").filtered()
+    filtered = load_observer(_broad_member()).filtered()
     ens = EnsembleObserver([filtered, filtered])
     g = torch.Generator().manual_seed(4)
     y = torch.randn(2, 30, filtered.measurement_dim, generator=g, dtype=torch.float64)
@@ -108,7 +116,7 @@ def test_an_ensemble_behind_one_readings_filter(tmp_path):
     from manifold_nets import load_observer
     from manifold_nets.observer import FilteredObserver
 
-    loaded = load_observer("zoo:broad/attitude")
+    loaded = load_observer(_broad_member())
     member = loaded.filtered()
     ens = FilteredObserver(member.prefilter, EnsembleObserver([loaded.observer, loaded.observer]))
     g = torch.Generator().manual_seed(5)
@@ -146,12 +154,10 @@ def test_refusals():
 
 
 def _ensemble_folder(root, names=("seed0", "seed1")):
-    """An ensemble folder of copies of the zoo's BROAD observer."""
+    """An ensemble folder of copies of one BROAD observer."""
     import shutil
 
-    from manifold_nets.plugins import zoo_path
-
-    src = zoo_path("broad/attitude")
+    src = _broad_member()
     for name in names:
         dst = root / "members" / name
         (dst / "checkpoints").mkdir(parents=True)
@@ -165,7 +171,7 @@ def test_an_ensemble_folder_loads_as_an_ensemble(tmp_path):
 
     loaded = load_observer(_ensemble_folder(tmp_path / "ens"))
     assert isinstance(loaded.observer, EnsembleObserver) and len(loaded.observer.members) == 2
-    single = load_observer("zoo:broad/attitude")
+    single = load_observer(_broad_member())
     g = torch.Generator().manual_seed(6)
     y = torch.randn(1, 15, single.observer.measurement_dim, generator=g, dtype=torch.float64)
     u = torch.randn(1, 15, single.observer.input_dim, generator=g, dtype=torch.float64)
@@ -204,3 +210,12 @@ def test_an_ensemble_folder_is_checked_before_anything_loads(tmp_path):
     cfg_file.write_text(yaml.safe_dump(cfg))
     with pytest.raises(ArtefactError, match="seed1's system differs from"):
         load_observer(other)
+
+
+def test_one_checkpoint_asked_of_an_ensemble_names_its_members():
+    """Where one checkpoint is needed (``train.init_from``, ``eval.checkpoint``), an ensemble
+    folder is refused with the way out: one member."""
+    from manifold_nets.checkpoint import CheckpointError, resolve_checkpoint
+
+    with pytest.raises(CheckpointError, match="is an ensemble folder .* name one member"):
+        resolve_checkpoint("zoo:broad/attitude", name="best.pt")

@@ -28,7 +28,6 @@ from typing import Any, NamedTuple
 import torch
 from torch import nn
 
-from .filtered import FilteredObserver
 from .observer import ResidualObserver
 
 __all__ = ["EnsembleObserver", "EnsembleState", "EnsembleStep"]
@@ -70,7 +69,10 @@ class EnsembleObserver(nn.Module):
             raise ValueError("members must be a non-empty list of observers (ResidualObserver or "
                              "FilteredObserver), e.g. [load_observer(run).filtered() for run in runs].")
         for i, m in enumerate(members):
-            if not isinstance(m, (ResidualObserver, FilteredObserver)):
+            # a FilteredObserver is known by its observer (filtered.py imports this module)
+            if not isinstance(m, ResidualObserver) and not (
+                    isinstance(m, nn.Module) and isinstance(getattr(m, "observer", None), ResidualObserver)
+            ):
                 raise TypeError(f"member {i} is a {type(m).__name__}; members must be "
                                 f"ResidualObserver or FilteredObserver.")
         first = members[0]

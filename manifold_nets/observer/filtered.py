@@ -24,6 +24,7 @@ from typing import NamedTuple
 import torch
 from torch import nn
 
+from .ensemble import EnsembleObserver
 from .observer import ObserverState, ResidualObserver
 from .readings_filter import FilterState, ReadingsFilter
 
@@ -58,8 +59,6 @@ class FilteredObserver(nn.Module):
     def __init__(self, prefilter: ReadingsFilter, observer: ResidualObserver,
                  dtype: torch.dtype | None = None):
         super().__init__()
-        from .ensemble import EnsembleObserver  # it imports this module
-
         if not isinstance(observer, (ResidualObserver, EnsembleObserver)):
             raise TypeError(f"observer must be a ResidualObserver or an EnsembleObserver, got "
                             f"{type(observer).__name__}.")
