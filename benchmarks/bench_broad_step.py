@@ -141,6 +141,17 @@ def step_alone(observer):
     return feed
 
 
+def barycentre_alone(ensemble):
+    """The ensemble's barycentre of its members' estimates, batch 1 (as its online step takes it)."""
+    x = ensemble.group.random((len(ensemble.members), 1), dtype=ensemble.state_dtype)
+
+    @torch.inference_mode()
+    def feed(*_):
+        ensemble.barycentre(list(x))
+
+    return feed
+
+
 def rows(args, trial):
     import vqf
 
@@ -151,6 +162,10 @@ def rows(args, trial):
         out[f"learned `{args.prefiltered_run}`, full online loop"] = (
             learned_stream(args.prefiltered_run)[0], 1)
     out["learned observer.step alone (per sample: / 8)"] = (step_alone(observer), 8)
+    members = getattr(observer, "members", None)
+    if members is not None:  # an ensemble: where its step's time goes
+        out["one member's step alone (per sample: / 8)"] = (step_alone(members[0]), 8)
+        out["the members' barycentre alone (per sample: / 8)"] = (barycentre_alone(observer), 8)
     dt = 1.0 / trial.rate
     v9, v6 = vqf.VQF(dt), vqf.VQF(dt)
     out["vqf.VQF.update 9-D (per call from Python)"] = (lambda g, a, m: v9.update(g, a, m), 1)

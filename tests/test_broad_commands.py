@@ -26,6 +26,7 @@ import torch
 import yaml
 
 from manifold_nets.checkpoint import load_checkpoint, save_checkpoint
+from manifold_nets.loading import ensemble_members
 from manifold_nets.plugins import zoo_path
 from manifold_nets.threads import use_threads
 from manifold_nets_examples.broad import apply as apply_cmd
@@ -42,6 +43,11 @@ from manifold_nets_examples.broad.metric import rmse
 ROOT = Path(__file__).resolve().parents[1]
 FIXTURE = ROOT / "tests" / "fixtures" / "broad" / "excerpt.mat"
 IMU = ("imu_gyr", "imu_acc", "imu_mag", "sampling_rate")
+
+
+def _member() -> Path:
+    """One observer of the zoo's BROAD ensemble (a run folder: its first member)."""
+    return ensemble_members(zoo_path("broad/attitude"))[0]
 
 
 def _raw() -> dict:
@@ -306,7 +312,7 @@ def test_a_missing_trial_names_no_option_the_command_lacks(tmp_path):
 @pytest.fixture
 def nan_run(tmp_path) -> Path:
     run = tmp_path / "nan_run"
-    shutil.copytree(zoo_path("broad/attitude"), run)
+    shutil.copytree(_member(), run)
     ckpt = load_checkpoint(run / "checkpoints" / "best.pt")
     name = next(k for k, v in ckpt["model"].items() if v.is_floating_point())
     ckpt["model"][name] = torch.full_like(ckpt["model"][name], float("nan"))
@@ -360,7 +366,7 @@ def _fail_fsync_of(name: str, monkeypatch) -> None:
 def test_evaluate_keeps_the_good_results_when_the_disk_is_full(tmp_path, monkeypatch):
     data, split = _split(tmp_path)
     run = tmp_path / "run"
-    shutil.copytree(zoo_path("broad/attitude"), run)
+    shutil.copytree(_member(), run)
     evaluate_cmd.evaluate_run(run, data, split, ["test"])
     npz = run / "results" / "learned_test_quaternions.npz"
     good = npz.read_bytes()
@@ -380,7 +386,7 @@ def test_train_copies_best_pt_atomically(tmp_path, monkeypatch):
     _fail_fsync_of("best.pt", monkeypatch)
     with pytest.raises(SystemExit, match="error: .*No space left on device"):
         train_cmd.main(["--split", str(split), "--out", str(out), "--init-from",
-                        "zoo:broad/attitude", "--pretrain-epochs", "0", "--finetune-epochs", "0"])
+                        str(_member()), "--pretrain-epochs", "0", "--finetune-epochs", "0"])
     assert not (out / "checkpoints" / "best.pt").exists()
     assert list((out / "checkpoints").iterdir()) == []
 

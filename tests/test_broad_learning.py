@@ -174,5 +174,6 @@ def test_the_shipped_observer_loads_and_tracks_the_excerpt(trial, tmp_path):
     assert res["quaternions"].shape == (2000, 4)
     assert res["rmse"]["total"] < 10.0, res["rmse"]
     observer, system, _ = load_observer(shipped)
-    assert observer.signature()["core"]["hidden_size"] == 64
-    assert (shipped / "checkpoints" / "best.pt").stat().st_size < 5 * 2**20
+    assert [m["core"]["hidden_size"] for m in observer.signature()["ensemble"]] == [64] * 3
+    for member in (shipped / "members").iterdir():
+        assert (member / "checkpoints" / "best.pt").stat().st_size < 5 * 2**20

@@ -20,7 +20,6 @@ import torch
 from groups import SO3, Euclidean, Product
 from manifold_nets import GRUCore, TrainSettings, load_observer
 from manifold_nets.data import TrajectoryDataset
-from manifold_nets.deploy import OnlineStep
 from manifold_nets.evaluation import evaluate, rollout
 from manifold_nets.observer import GroupUpdate, ResidualObserver
 from manifold_nets.training import fit
@@ -68,7 +67,7 @@ def test_shipped_observers_roll_out_and_step_on_the_device(entry, device, record
     record_property(f"rollout_deviation[{entry}]", dev)
     assert dev <= _bound(device, ROLLOUT_TOL), dev
     # the online step (what deployment runs), fed one sample at a time on the device
-    step = OnlineStep(there)
+    step = there.online_step_module()  # OnlineStep, or an ensemble's EnsembleStep
     x, *state = step.initial_state(len(data))
     assert x.device == device and all(s.device == device for s in state)
     y, u = data.measurements.to(device), data.inputs.to(device)

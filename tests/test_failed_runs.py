@@ -11,6 +11,8 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+#: one observer of the zoo's BROAD ensemble (a run folder)
+MEMBER = ROOT / "examples" / "broad" / "zoo" / "attitude" / "members" / "seed3"
 
 
 def test_a_run_that_failed_after_writing_keeps_its_folder_and_says_where(tmp_path):
@@ -18,7 +20,7 @@ def test_a_run_that_failed_after_writing_keeps_its_folder_and_says_where(tmp_pat
     # wrote its config.yaml
     out_dir = tmp_path / "outputs" / "run"
     cmd = [sys.executable, "-m", "manifold_nets.cli.evaluate", "experiment=default", "debug=tiny",
-           "eval.checkpoint=zoo:broad/attitude", f"hydra.run.dir={out_dir}"]  # fmt: skip
+           f"eval.checkpoint={MEMBER}", f"hydra.run.dir={out_dir}"]  # fmt: skip
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     out = subprocess.run(
         cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=120, check=False

@@ -21,6 +21,7 @@ import torch
 
 from manifold_nets import load_observer
 from manifold_nets.checkpoint import FORMAT, load_checkpoint
+from manifold_nets.loading import ensemble_members
 from manifold_nets.plugins import zoo_entries, zoo_path
 
 ROOT = Path(__file__).parents[1]
@@ -49,14 +50,32 @@ def test_the_zoo_is_these_entries_and_at_most_eight_checkpoints_ship():
     assert len(shipped) == len(checkpoints) + len(readouts), shipped
 
 
+#: Entries that are ensembles (``members/<name>/``, each a run folder), with their member count.
+ENSEMBLES = {"broad/attitude": 3}
+
+
 @pytest.mark.parametrize("name", ENTRIES)
 def test_an_entry_has_a_card_a_small_checkpoint_of_today_s_format(name):
     folder = zoo_path(name)
     card = (folder / "card.md").read_text()
     assert f"zoo:{name}" in card  # the command that evaluates it
-    ckpt_file = folder / "checkpoints" / "best.pt"
-    assert ckpt_file.stat().st_size < 5 * 2**20
-    assert load_checkpoint(ckpt_file)["format"] == FORMAT
+    runs = ensemble_members(folder) or [folder]
+    assert len(runs) == ENSEMBLES.get(name, 1)
+    for run in runs:
+        ckpt_file = run / "checkpoints" / "best.pt"
+        assert ckpt_file.stat().st_size < 5 * 2**20
+        assert load_checkpoint(ckpt_file)["format"] == FORMAT
+
+
+@pytest.mark.parametrize("name", list(ENSEMBLES))
+def test_an_ensemble_entry_loads_as_its_members(name):
+    from manifold_nets.observer import EnsembleObserver
+
+    loaded = load_observer(f"zoo:{name}")
+    assert isinstance(loaded.observer, EnsembleObserver)
+    for member, run in zip(loaded.observer.members, ensemble_members(zoo_path(name))):
+        alone = load_observer(run).observer.state_dict()
+        assert all(torch.equal(t, alone[k]) for k, t in member.state_dict().items())
 
 
 @pytest.mark.parametrize("name", ENTRIES)

@@ -5,7 +5,8 @@
     python -m manifold_nets_examples.broad.calibration --out outputs/broad_calibration
     python -m manifold_nets_examples.broad.calibration --sources readings --epochs 2 --out /tmp/bc
 
-The observer (``--observer``, default ``zoo:broad/attitude``) stays frozen; it measures no group
+The observer (``--observer``, one observer's run folder; default the first member of the
+ensemble ``zoo:broad/attitude``, ``members/seed3``) stays frozen; it measures no group
 factor (it reads the IMU), so the readout reads either the IMU readings of each step
 (``readings``) or the core's hidden state (``hidden``). For each ``--sources`` a readout
 (per-factor blocks, a 32-wide memory) is fitted to the attitude errors ``Log(Rhat^T R_ref)`` on
@@ -53,7 +54,9 @@ from manifold_nets.covariance_training import (
 from manifold_nets.observer import (
     CalibratedObserver, CovarianceReadout, EnsembleObserver, ObserverState,
 )
+from manifold_nets.loading import ensemble_members
 from manifold_nets.observer.covariance import input_width
+from manifold_nets.plugins import zoo_path
 from manifold_nets.threads import use_threads
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
@@ -136,7 +139,9 @@ def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True)
-    p.add_argument("--observer", default="zoo:broad/attitude")
+    p.add_argument("--observer", default=None,
+                   help="one observer's run folder (default: the first member of the zoo's "
+                   "broad/attitude ensemble)")
     p.add_argument("--sources", nargs="+", default=["readings", "hidden"], choices=["readings", "hidden"])
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--window", type=int, default=400, help="observer steps per training window")
@@ -189,6 +194,8 @@ def main(argv=None) -> None:
                          "readout fitted to the other folds': give two folds or more.")
     data_dir, split = split_trials(None)
     data_dir = args.data_dir or data_dir
+    if args.observer is None:
+        args.observer = str(ensemble_members(zoo_path("broad/attitude"))[0])
     observer, system, _ = load_observer(args.observer)
     if isinstance(observer, EnsembleObserver):
         raise ValueError(
