@@ -288,8 +288,9 @@ MAX_MEMBERS = 16
 def ensemble_members(path: Path) -> list[Path] | None:
     """The member run folders of an ensemble folder (``<path>/members/<name>/``, by name), or
     ``None`` when ``path`` is not one (a run folder, a checkpoint). ``ArtefactError`` for an
-    empty ``members/``, more than :data:`MAX_MEMBERS`, a member that is a link or not a folder,
-    or a ``config.yaml`` beside ``members/`` (one folder, one observer)."""
+    empty ``members/``, more than :data:`MAX_MEMBERS`, a member that is a link, not a folder or
+    an ensemble folder itself, or a ``config.yaml`` beside ``members/`` (one folder, one
+    observer)."""
     folder = Path(path) / "members"
     if not folder.is_dir():
         return None
@@ -304,6 +305,9 @@ def ensemble_members(path: Path) -> list[Path] | None:
         if m.is_symlink() or not m.is_dir():
             raise ArtefactError(f"{m} is not a run folder (a link or a file); an ensemble's "
                                 "members are run folders inside members/ itself.")
+        if (m / "members").exists():  # refused before anything loads, however deep it nests
+            raise ArtefactError(f"{m} is itself an ensemble folder; an ensemble's members are "
+                                "run folders (flatten the ensembles into one members/).")
     return members
 
 

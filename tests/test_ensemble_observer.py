@@ -198,6 +198,10 @@ def test_an_ensemble_folder_is_checked_before_anything_loads(tmp_path):
     (linked / "members" / "seed2").symlink_to(linked / "members" / "seed0")
     with pytest.raises(ArtefactError, match="is not a run folder"):
         load_observer(linked)
+    nested = _ensemble_folder(tmp_path / "nested")
+    _ensemble_folder(nested / "members" / "seed1", names=("inner",))
+    with pytest.raises(ArtefactError, match="seed1 is itself an ensemble folder"):
+        load_observer(nested)
     many = tmp_path / "many" / "members"
     for i in range(MAX_MEMBERS + 1):
         (many / f"m{i:02d}").mkdir(parents=True)

@@ -1,8 +1,8 @@
 """Several observers of one group run side by side; the estimate is their barycentre on the group.
 
 Observers of one configuration trained from different seeds err differently; their average errs
-less than most of them (on BROAD an ensemble of three seeds buys 0.06-0.09 deg over their mean,
-docs/real_data.md). An :class:`EnsembleObserver` runs each member's own recursion on the same
+less than most of them (on BROAD an ensemble of three seeds buys 0.06-0.14 deg over their mean
+in cross-validation, docs/real_data.md). An :class:`EnsembleObserver` runs each member's own recursion on the same
 readings (a member's estimate feeds only itself) and returns, at every step, the members'
 barycentre (:meth:`groups.LieGroup.mean`): on the group, as each member's estimate is::
 
