@@ -236,6 +236,12 @@ def export_onnx(observer: ResidualObserver, path: str | os.PathLike, batch: int 
         raise ImportError(
             f"export_onnx needs onnx and onnxscript ({err}); pip install 'manifold_nets[export]'."
         ) from None
+    if not hasattr(observer, "uses_step_count"):  # a ResidualObserver's (no import: no cycle)
+        raise TypeError(
+            f"export_onnx exports one ResidualObserver's step, got {type(observer).__name__}; "
+            "export an ensemble or an observer behind its readings filter with export_observer "
+            "(torch.export), or pass its bare observer."
+        )
     step = OnlineStep(observer).eval()
     names = _meta(step, batch)["inputs"]
     outputs = ["x_next"] + [f"{name}_next" for name in step.state_names()]

@@ -223,3 +223,12 @@ def test_one_checkpoint_asked_of_an_ensemble_names_its_members():
 
     with pytest.raises(CheckpointError, match="is an ensemble folder .* name one member"):
         resolve_checkpoint("zoo:broad/attitude", name="best.pt")
+
+
+def test_onnx_export_of_an_ensemble_names_the_way_that_works():
+    from manifold_nets.deploy import export_onnx
+
+    pytest.importorskip("onnxscript")
+    with pytest.raises(TypeError, match="export_onnx exports one ResidualObserver's step, got "
+                       "EnsembleObserver; export an ensemble .* with export_observer"):
+        export_onnx(EnsembleObserver(_members(SO3(), 9, 2)), "unused.onnx")
