@@ -29,11 +29,11 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from manifold_nets import load_observer  # noqa: E402
-from manifold_nets.observer import FilteredState, with_readings_filter  # noqa: E402
+from manifold_nets.observer import with_readings_filter  # noqa: E402
 from manifold_nets_examples.broad.data import G0, M0, read_trials, split_trials  # noqa: E402
 from manifold_nets_examples.broad.evaluate import observer_quaternions, pad_trials  # noqa: E402
 from manifold_nets_examples.broad.imu_prefilter import ImuPrefilter  # noqa: E402
-from manifold_nets_examples.broad.learning import measured_start, started  # noqa: E402
+from manifold_nets_examples.broad.learning import measured_start  # noqa: E402
 from manifold_nets_examples.broad.metric import matrix_to_quat, rmse  # noqa: E402
 from manifold_nets_examples.broad.prefilter import OnlinePrefilter, prefiltered  # noqa: E402
 from manifold_nets_examples.broad.rate import decimate  # noqa: E402
@@ -91,7 +91,7 @@ def observer_rate(trials) -> list[str]:
     batch, lengths = pad_trials(trials)
     dec = decimate(batch, k, 1 / trials[0].rate)
     x0 = measured_start(system)(dec).to(observer.state_dtype)
-    start = FilteredState(started(observer, x0), filtered.prefilter.init_state(len(dec)))
+    start = filtered.init_state(len(dec), estimate=x0)
     with torch.inference_mode():
         library = matrix_to_quat(filtered(dec.measurements, dec.inputs, state=start).numpy())
     lines = [f"`zoo:broad/attitude`, scored at its steps (every {k}th sample):", "",

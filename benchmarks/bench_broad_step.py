@@ -67,7 +67,6 @@ def learned_stream(run: str, x0=None):
     from manifold_nets_examples.broad.data import G0, M0
 
     from manifold_nets_examples.broad.evaluate import input_settings
-    from manifold_nets_examples.broad.learning import started
 
     observer, system, _ = load_observer(run)
     observer.eval()
@@ -87,7 +86,7 @@ def learned_stream(run: str, x0=None):
                          dtype=torch.float32)[None]
         if st["state"] is None:  # TRIAD of the first sample (its gyro is not integrated)
             start = system.state_from_measurement(y.double()) if x0 is None else x0
-            st["state"] = started(observer, start)
+            st["state"] = observer.init_state(1, estimate=start)
             st["R"] = start[0].numpy()
             return st["R"]
         st["block"] = st["block"] @ inc

@@ -52,7 +52,7 @@ from manifold_nets.covariance_training import (
     step_nees,
 )
 from manifold_nets.observer import (
-    CalibratedObserver, CovarianceReadout, EnsembleObserver, ObserverState,
+    CalibratedObserver, CovarianceReadout, EnsembleObserver,
 )
 from manifold_nets.loading import ensemble_members
 from manifold_nets.observer.covariance import input_width
@@ -246,7 +246,7 @@ def main(argv=None) -> None:
 def _scored(observer, readout, test, test_trials, start) -> dict:
     """Each test trial's NEES / 3 and shares inside 1, 2, 3 sigma, and their means."""
     cal = CalibratedObserver(observer, readout).eval()
-    state = ObserverState(start(test).to(observer.state_dtype), observer.core.initial_hidden(len(test)))
+    state = observer.init_state(len(test), estimate=start(test))
     with torch.no_grad():
         est, cov = cal(test.measurements, test.inputs, state=state)
     xi = tangent_errors(observer.group, est, test.states)

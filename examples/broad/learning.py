@@ -61,7 +61,6 @@ __all__ = [
     "near_truth_start",
     "RandomMounting",
     "RandomHeading",
-    "started",
     "estimate_rotations",
     "tilt",
     "tilt_start",
@@ -234,14 +233,6 @@ class RandomHeading:
         return TrajectoryDataset(states, batch.measurements, batch.inputs, batch.meta, batch.mask)
 
 
-def started(observer: ResidualObserver | EnsembleObserver, x0: torch.Tensor):
-    """``observer``'s state at the estimate ``x0`` ``(N, 3, 3)`` with a fresh core (every
-    member at ``x0`` with its own, for an ensemble)."""
-    if isinstance(observer, EnsembleObserver):
-        return observer.init_state(len(x0), x0.device, estimate=x0)
-    return observer.init_state(len(x0), x0.device)._replace(estimate=x0.to(observer.state_dtype))
-
-
 @torch.inference_mode()
 def estimate_rotations(
     observer: ResidualObserver | EnsembleObserver, system: BroadSimulator, data: TrajectoryDataset,
@@ -257,5 +248,6 @@ def estimate_rotations(
         data = without_magnetometer(data)
     first = measured_start(system) if magnetometer else tilt_start(system)
     x0 = first(data).to(device=observer.device, dtype=observer.state_dtype)
-    est = observer(data.measurements, data.inputs, state=started(observer, x0))
+    state = observer.init_state(len(x0), x0.device, estimate=x0)  # every member's, for an ensemble
+    est = observer(data.measurements, data.inputs, state=state)
     return est.cpu().to(torch.float64)

@@ -45,13 +45,6 @@ def _estimate(state) -> torch.Tensor:
     return state.estimate if hasattr(state, "estimate") else state.observer.estimate
 
 
-def _started(state, estimate: torch.Tensor):
-    """A member state with its estimate replaced by ``estimate``."""
-    if hasattr(state, "estimate"):
-        return state._replace(estimate=estimate.to(state.estimate))
-    return state._replace(observer=_started(state.observer, estimate))
-
-
 class EnsembleObserver(nn.Module):
     """Members run side by side, their barycentre out; see the module docstring.
 
@@ -130,9 +123,7 @@ class EnsembleObserver(nn.Module):
         """Every member's start (the identity, a fresh core and filter), and their barycentre;
         with ``estimate`` ``(batch, *element_shape)`` every member starts there instead (a
         measured start, e.g. TRIAD of the first reading)."""
-        states = tuple(m.init_state(batch, device) for m in self.members)
-        if estimate is not None:
-            states = tuple(_started(s, estimate) for s in states)
+        states = tuple(m.init_state(batch, device, estimate) for m in self.members)
         return EnsembleState(states, self.barycentre([_estimate(s) for s in states]))
 
     def forward(self, measurements, inputs=None, state: EnsembleState | None = None,

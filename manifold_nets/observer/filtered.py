@@ -111,10 +111,11 @@ class FilteredObserver(nn.Module):
 
     # ------------------------------------------------------------------ rollout and online step
 
-    def init_state(self, batch: int, device=None) -> FilteredState:
-        """The observer's start (the identity) and the filter's."""
+    def init_state(self, batch: int, device=None, estimate: torch.Tensor | None = None
+                   ) -> FilteredState:
+        """The observer's start (the identity, or ``estimate``) and the filter's."""
         device = self.device if device is None else device
-        return FilteredState(self.observer.init_state(batch, device),
+        return FilteredState(self.observer.init_state(batch, device, estimate),
                              self.prefilter.init_state(batch, self.filter_dtype, device))
 
     def forward(self, measurements, inputs=None, state: FilteredState | None = None,

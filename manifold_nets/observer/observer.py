@@ -230,12 +230,13 @@ class ResidualObserver(nn.Module):
     def _features(self, view) -> torch.Tensor:
         return view.cat_features(self.features)  # cat(f(view) for f in self.features)
 
-    def init_state(self, batch: int, device=None) -> ObserverState:
-        """The state before the first step: the identity and the core's initial hidden state."""
+    def init_state(self, batch: int, device=None, estimate=None) -> ObserverState:
+        """The start: the identity (or ``estimate``, measured) and the core's initial state."""
         if isinstance(batch, bool) or not isinstance(batch, int) or batch < 1:
             raise ValueError(f"batch must be a positive integer, got {batch!r}.")
         device = self.device if device is None else device
-        x = self.group.identity((batch,), dtype=self.state_dtype, device=device)
+        x = self.group.identity((batch,), dtype=self.state_dtype, device=device) if estimate is None \
+            else estimate.to(device=device, dtype=self.state_dtype)  # fmt: skip
         return ObserverState(x, self.core.initial_hidden(batch, device=device))
 
     def step(self, state: ObserverState, y: torch.Tensor, u: torch.Tensor | None = None):
