@@ -62,11 +62,20 @@ class Sequences(NamedTuple):
 @torch.no_grad()
 def readout_sequences(
     observer: ResidualObserver, data: TrajectoryDataset, source: str = "residual", skip: int = 1,
-    batch_size: int = 250, start=None,
+    batch_size: int = 250, start=None, context: torch.Tensor | None = None,
 ) -> Sequences:
     """``data``'s sequences as a readout of ``source`` sees them, the observer started at
     ``start(batch)`` (a :data:`~manifold_nets.training_losses.StartFn`) or its own start; the
-    steps ``k >= skip`` (and ``data.mask``, when it has one) count."""
+    steps ``k >= skip`` (and ``data.mask``, when it has one) count. An observer other than a
+    :class:`ResidualObserver` (an ensemble, a filtered observer) is read by ``"readings"``.
+    ``context`` ``(N, T, C)``: side information of each step, appended to the features (for a
+    readout of ``context=C``)."""
+    if context is not None and tuple(context.shape[:2]) != (len(data), data.length):
+        raise ValueError(f"context must be ({len(data)}, {data.length}, C) for these sequences, "
+                         f"got {tuple(context.shape)}.")
+    if not isinstance(observer, ResidualObserver) and source != "readings":
+        raise ValueError(f"a {type(observer).__name__} has no one core or measured factors to "
+                         f"read; its readout reads source='readings', got {source!r}.")
     if isinstance(skip, bool) or not isinstance(skip, int) or not 1 <= skip <= data.length:
         raise ValueError(f"skip must be an integer in [1, {data.length}], got {skip!r}.")
     was = observer.training
@@ -76,17 +85,25 @@ def readout_sequences(
         for s in range(0, len(data), batch_size):
             part = data[torch.arange(s, min(len(data), s + batch_size))]
             inputs = part.inputs if part.inputs.shape[-1] else None
-            state = initial_state(observer, part, start)
-            run = observer.rollout(part.measurements, inputs, state=state, keep_hidden=True)
-            xi = tangent_errors(observer.group, run.estimates, part.states)[:, 1:]
+            if isinstance(observer, ResidualObserver):
+                state = initial_state(observer, part, start)
+                run = observer.rollout(part.measurements, inputs, state=state, keep_hidden=True)
+                estimates = run.estimates
+                z = readout_inputs(
+                    observer, source, estimates[:, 1:].flatten(2), part.measurements, inputs,
+                    tuple(h[:, 1:] for h in run.hidden),
+                )
+            else:  # an ensemble or a filtered observer: its own rollout, its readings
+                state = None if start is None else observer.init_state(len(part), estimate=start(part))
+                estimates = observer(part.measurements, inputs, state=state)
+                z = readout_inputs(observer, source, None, part.measurements, inputs, None)
+            if context is not None:
+                z = torch.cat([z, context[s : s + len(part)].to(z)], dim=-1)
+            xi = tangent_errors(observer.group, estimates, part.states)[:, 1:]
             known = torch.zeros(xi.shape[:2], dtype=torch.bool)
             known[:, skip - 1 :] = True
             if part.mask is not None:
                 known &= part.mask[:, 1:].bool()
-            z = readout_inputs(
-                observer, source, run.estimates[:, 1:].flatten(2), part.measurements, inputs,
-                tuple(h[:, 1:] for h in run.hidden),
-            )
             parts.append(Sequences(z, xi.double(), known))
     finally:
         observer.train(was)
@@ -262,7 +279,9 @@ def load_readout(path, observer: ResidualObserver):
 
     from .checkpoint import CheckpointError, load_state
     from .observer import CalibratedObserver
-    from .observer.covariance import MAX_MEMORY, SOURCES, STRUCTURES, check_clock, input_width
+    from .observer.covariance import (
+        MAX_CONTEXT, MAX_MEMORY, SOURCES, STRUCTURES, check_clock, input_width,
+    )
 
     path = Path(path)
     if not path.is_file():
@@ -280,22 +299,27 @@ def load_readout(path, observer: ResidualObserver):
         raise CheckpointError(f"{path}: the signature or the weights are missing.")
     # what the file may choose, checked; the rest must be what this observer fixes
     source, structure, memory = sig.get("source"), sig.get("structure"), sig.get("memory")
+    context = sig.get("context", 0)
     try:
         clock = check_clock(sig.get("clock", ()))
     except ValueError:
         clock = None
     choices_ok = (source in SOURCES and structure in STRUCTURES and type(memory) is int
-                  and 0 <= memory <= MAX_MEMORY and clock is not None)
+                  and 0 <= memory <= MAX_MEMORY and clock is not None
+                  and type(context) is int and 0 <= context <= MAX_CONTEXT)
     want = {"type": "cholesky", "group": repr(observer.group), "source": source,
             "structure": structure, "memory": memory,
-            "width": input_width(observer, source) if source in SOURCES else None,
-            **({"clock": sig.get("clock")} if clock else {})}
+            "width": input_width(observer, source) if source == "readings" or (
+                source in SOURCES and isinstance(observer, ResidualObserver)) else None,
+            **({"clock": sig.get("clock")} if clock else {}),
+            **({"context": context} if choices_ok and context else {})}
     if not choices_ok or sig != want:
         diff = sorted(k for k in set(sig) | set(want) if sig.get(k) != want.get(k))
         raise CheckpointError(
             f"{path}: the readout does not fit this observer (its signature {sig!r}; "
             f"{', '.join(diff) or 'source, structure or memory'} differ from {want!r})."[:2000]
         )
-    readout = CovarianceReadout(observer.group, want["width"], structure, memory, source, clock)
+    readout = CovarianceReadout(observer.group, want["width"], structure, memory, source, clock,
+                                context)
     load_state(readout, {"model": state}, path)
     return CalibratedObserver(observer, readout)

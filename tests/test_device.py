@@ -11,6 +11,7 @@ runs this file with ``--device cuda``.
 
 from __future__ import annotations
 
+import copy
 import functools
 import json
 
@@ -77,6 +78,45 @@ def test_shipped_observers_roll_out_and_step_on_the_device(entry, device, record
     last = x.reshape(est_dev[:, -1].shape)
     assert last.device == device
     torch.testing.assert_close(last.cpu(), est_dev[:, -1], rtol=0, atol=1e-9)
+
+
+def test_a_calibrated_ensemble_rolls_out_and_steps_on_the_device(device, record_property):
+    """The zoo's BROAD ensemble with a readings readout (random weights): its covariances on the
+    device follow the CPU's, in the rollout and the online step."""
+    from manifold_nets.observer import CalibratedObserver, CovarianceReadout
+    from manifold_nets.observer.covariance import input_width
+    from observer_checks import assert_covariances_close
+
+    loaded = load_observer("zoo:broad/attitude")
+    ens, system = loaded.observer, loaded.system
+    torch.manual_seed(0)
+    readout = CovarianceReadout(ens.group, input_width(ens, "readings"), memory=8, source="readings")
+    with torch.no_grad():
+        for p in readout.parameters():
+            p.normal_(0, 0.1)
+    cpu = CalibratedObserver(ens, readout).eval()
+    there = CalibratedObserver(load_observer("zoo:broad/attitude", map_location=device).observer,
+                               copy.deepcopy(readout)).to(device).eval()
+    data = system.simulate(4, 60, 0.2, torch.Generator().manual_seed(3))
+    y, u = data.measurements, data.inputs
+    with torch.no_grad():
+        est_cpu, cov_cpu = cpu(y, u)
+        est_dev, cov_dev = there(y.to(device), u.to(device))
+        assert cov_dev.device == device
+        dev = _deviation(ens.group, est_dev, est_cpu)
+        record_property("calibrated_ensemble_deviation", dev)
+        assert dev <= _bound(device, ROLLOUT_TOL), dev
+        # the readout's float32 GRU: cuDNN's (TF32 by default, a 10-bit mantissa) against the
+        # CPU's; measured on an H100: 1.3e-4 of an entry's scale
+        s = cov_cpu.diagonal(dim1=-2, dim2=-1).sqrt()
+        scale = s.unsqueeze(-1) * s.unsqueeze(-2)
+        record_property("calibrated_ensemble_cov_deviation",
+                        float(((cov_dev.cpu() - cov_cpu) / scale).abs().max()))
+        assert_covariances_close(cov_dev.cpu(), cov_cpu, tol=max(_bound(device, 1e-3), 1e-12))
+        state = there.init_state(4)
+        for k in range(y.shape[1]):
+            state, P = there.step(state, y[:, k].to(device), u[:, k].to(device))
+        assert_covariances_close(P.cpu(), cov_cpu[:, -1], tol=max(_bound(device, 1e-3), 1e-5))
 
 
 GROUP = Product(SO3(), Euclidean(3), names=("R", "p"))

@@ -29,6 +29,18 @@ at 0.5; ``benchmarks/bench_covariance_inputs.py``). Structures:
 diagonal are the readout (so ``log det P = 2 sum d`` exactly, and the correlations are free of
 the errors' scale). Step 0 (the start, before any measurement) has its own learned factor.
 
+A ``"readings"`` readout reads nothing of the observer, so it serves any observer: a
+:class:`CalibratedObserver` may wrap an :class:`~manifold_nets.observer.EnsembleObserver` (whose
+members have no one core to read) or a :class:`~manifold_nets.observer.FilteredObserver` with
+one, its covariance fitted to that observer's own errors.
+
+A readout may also read *context* (``context=C``): ``C`` numbers a step of side information
+that the observer does not read, given beside its readings (``cal(y, u, context=c)``,
+``cal.step(state, y, u, context=c_k)``, the last argument of the exported step). An observer
+run at every ``k``-th sample sees one sample of each block; how far the block's ``k`` samples
+spread (a vibration that a low-pass and the step's average hide) is such context
+(``examples/broad/calibration.py``).
+
 :class:`CalibratedObserver` puts an observer and a readout together: its rollout returns the
 estimates and the covariances ``(N, T+1, n, n)``, its online step the new state and ``P``, and
 its exported step (:meth:`CalibratedObserver.online_step_module`) one more state tensor (the
@@ -52,7 +64,7 @@ from .observer import ObserverState, ResidualObserver
 
 __all__ = [
     "STRUCTURES", "SOURCES", "CovarianceReadout", "CalibratedObserver", "CalibratedState",
-    "hidden_features", "readout_inputs", "gaussian_nll",
+    "hidden_features", "readout_inputs", "with_context", "gaussian_nll",
 ]
 
 STRUCTURES = ("diagonal", "factor", "joint")
@@ -106,6 +118,8 @@ def _mask(group: LieGroup, structure: str) -> torch.Tensor:
     return m.tril()
 
 
+#: The most numbers of context a readout may read per step.
+MAX_CONTEXT = 256
 #: The most time constants a readout's clock may have.
 MAX_CLOCK = 8
 
@@ -138,11 +152,14 @@ class CovarianceReadout(nn.Module):
         width: how many numbers it reads per step (:func:`input_width`).
         structure: ``"diagonal"``, ``"factor"`` or ``"joint"``.
         memory: the width of the readout's own GRU; 0 for a memoryless linear readout.
-        source: ``"residual"`` or ``"hidden"`` (what it reads; module docstring).
+        source: ``"residual"``, ``"hidden"`` or ``"readings"`` (what it reads; module docstring).
+        clock: time constants in steps; the readout also reads ``exp(-k / tau)`` at step ``k``.
+        context: how many numbers of side information it reads per step beside the source's
+            (0: none; module docstring).
     """
 
     def __init__(self, group: LieGroup, width: int, structure: str = "factor", memory: int = 32,
-                 source: str = "residual", clock: tuple[float, ...] = ()):
+                 source: str = "residual", clock: tuple[float, ...] = (), context: int = 0):
         super().__init__()
         if structure not in STRUCTURES:
             raise ValueError(f"covariance: structure must be one of {STRUCTURES}, got {structure!r}.")
@@ -150,16 +167,17 @@ class CovarianceReadout(nn.Module):
             raise ValueError(f"covariance: source must be one of {SOURCES}, got {source!r}.")
         _check_int("width", width, 1, 16384)
         _check_int("memory", memory, 0, MAX_MEMORY)
-        self.clock = check_clock(clock)
+        _check_int("context", context, 0, MAX_CONTEXT)
+        self.clock, self.context = check_clock(clock), context
         self.group, self.structure, self.memory, self.source = group, structure, memory, source
         self.width, self.n = width, group.tangent_dim
         rows, cols = torch.nonzero(_mask(group, structure), as_tuple=True)
         self.register_buffer("rows", rows, persistent=False)
         self.register_buffer("cols", cols, persistent=False)
         self.register_buffer("on_diagonal", rows == cols, persistent=False)
-        self.register_buffer("shift", torch.zeros(width))
-        self.register_buffer("scale", torch.ones(width))
-        reads = width + len(self.clock)
+        self.register_buffer("shift", torch.zeros(width + context))
+        self.register_buffer("scale", torch.ones(width + context))
+        reads = width + context + len(self.clock)
         if self.clock:
             self.register_buffer("taus", torch.tensor(self.clock), persistent=False)
         self.gru = nn.GRU(reads, memory, batch_first=True) if memory else None
@@ -171,11 +189,12 @@ class CovarianceReadout(nn.Module):
             "type": "cholesky", "structure": self.structure, "memory": self.memory,
             "source": self.source, "width": self.width, "group": repr(self.group),
             **({"clock": list(self.clock)} if self.clock else {}),
+            **({"context": self.context} if self.context else {}),
         }
 
     def set_input_stats(self, inputs: torch.Tensor) -> None:
         """Standardises the inputs by their mean and standard deviation over ``inputs``
-        ``(M, width)`` (the training data's known steps)."""
+        ``(M, width + context)`` (the training data's known steps)."""
         with torch.no_grad():
             self.shift.copy_(inputs.mean(0))
             self.scale.copy_(inputs.std(0).clamp_min(1e-12))
@@ -227,7 +246,7 @@ class CovarianceReadout(nn.Module):
         return torch.exp(-ks.reshape(-1, steps, 1) / self.taus.double()).to(self.out.weight.dtype)
 
     def raw(self, inputs: torch.Tensor, memory: torch.Tensor, start=0) -> tuple[torch.Tensor, torch.Tensor]:
-        """The readout ``(B, T, count)`` of ``inputs`` ``(B, T, width)`` from ``memory``
+        """The readout ``(B, T, count)`` of ``inputs`` ``(B, T, width + context)`` from ``memory``
         ``(B, memory)``, and the memory after them; ``start``: the steps taken before the first
         input (an int or ``(B,)``; read only by a clock)."""
         z = (inputs - self.shift) / self.scale
@@ -279,6 +298,32 @@ def gaussian_nll(errors: torch.Tensor, chol: torch.Tensor, log_diag: torch.Tenso
     return 0.5 * w.squeeze(-1).square().sum(-1) + log_diag.sum(-1)
 
 
+def steps_taken(state) -> int:
+    """The steps an observer's online state has taken (an :class:`ObserverState`'s count; a
+    filtered observer's or an ensemble's, that of its first observer)."""
+    while not isinstance(state, ObserverState):
+        state = state.members[0] if hasattr(state, "members") else state.observer
+    return state.steps
+
+
+def with_context(readout: CovarianceReadout, z: torch.Tensor, context: torch.Tensor | None
+                 ) -> torch.Tensor:
+    """The readout's inputs ``z`` ``(..., width)`` and, for a readout that reads context, the
+    step's ``context`` ``(..., context)`` after them; ``ValueError`` naming the shape needed when
+    one is missing, misshapen, or given to a readout that reads none."""
+    want = readout.context
+    if not want:
+        if context is not None:
+            raise ValueError("this readout reads no context; call without one (or fit a readout "
+                             "with context=...).")
+        return z
+    if context is None or tuple(context.shape) != (*z.shape[:-1], want):
+        got = "none" if context is None else tuple(context.shape)
+        raise ValueError(f"this readout reads {want} numbers of context per step: give context "
+                         f"of shape {(*z.shape[:-1], want)}, got {got}.")
+    return torch.cat([z, context.to(z)], dim=-1)
+
+
 class CalibratedState(NamedTuple):
     """The online state of a :class:`CalibratedObserver`: the observer's and the readout's
     memory ``(B, memory)``."""
@@ -292,8 +337,15 @@ class CalibratedObserver(nn.Module):
 
     def __init__(self, observer: ResidualObserver, readout: CovarianceReadout):
         super().__init__()
-        if not isinstance(observer, ResidualObserver):
-            raise TypeError(f"observer must be a ResidualObserver, got {type(observer).__name__}.")
+        if not isinstance(observer, ResidualObserver) and not (
+                readout.source == "readings" and isinstance(observer, nn.Module)
+                and hasattr(observer, "online_step_module")):
+            raise TypeError(
+                f"a {readout.source} readout reads one ResidualObserver's "
+                f"{'core' if readout.source == 'hidden' else 'measured factors'}; got a "
+                f"{type(observer).__name__}. A readout of source 'readings' serves any observer "
+                "(an EnsembleObserver, a FilteredObserver)."
+            )
         if readout.source == "residual" and not observer.measurement.factors:
             raise ValueError(
                 "a residual readout reads the measured factors' residuals, but the observer's "
@@ -312,35 +364,47 @@ class CalibratedObserver(nn.Module):
     def group(self) -> LieGroup:
         return self.observer.group
 
-    def inputs(self, x, y, u, hidden) -> torch.Tensor:
-        """:func:`readout_inputs` of this observer and readout."""
-        return readout_inputs(self.observer, self.readout.source, x, y, u, hidden)
+    def inputs(self, x, y, u, hidden, context: torch.Tensor | None = None) -> torch.Tensor:
+        """:func:`readout_inputs` of this observer and readout, and the step's ``context``
+        (:func:`with_context`)."""
+        z = readout_inputs(self.observer, self.readout.source, x, y, u, hidden)
+        return with_context(self.readout, z, context)
 
-    def forward(self, measurements, inputs=None, state: ObserverState | None = None):
+    def forward(self, measurements, inputs=None, state: ObserverState | None = None,
+                context: torch.Tensor | None = None):
         """``(estimates (N, T+1, *element_shape), covariances (N, T+1, n, n))`` from the
         observer's start (or ``state``: an observer state, the readout's memory starting fresh);
-        the first covariance is the start's."""
-        run = self.observer.rollout(measurements, inputs, state=state, keep_hidden=True)
-        n = run.estimates.shape[0]
-        z = self.inputs(
-            run.estimates[:, 1:].flatten(2), measurements, inputs,
-            tuple(h[:, 1:] for h in run.hidden),
-        )
-        start = 0 if state is None else state.steps
+        the first covariance is the start's. ``context`` ``(N, T, context)``: the side
+        information of each step, for a readout that reads some."""
+        if isinstance(self.observer, ResidualObserver):
+            run = self.observer.rollout(measurements, inputs, state=state, keep_hidden=True)
+            estimates = run.estimates
+            z = self.inputs(
+                estimates[:, 1:].flatten(2), measurements, inputs,
+                tuple(h[:, 1:] for h in run.hidden), context,
+            )
+        else:  # any other observer, read by its readings alone
+            estimates = self.observer(measurements, inputs, state=state)
+            z = self.inputs(None, measurements, inputs, None, context)
+        n = estimates.shape[0]
+        start = 0 if state is None else steps_taken(state)
         chol, _ = self.readout.cholesky(z, self.readout.initial_memory(n, z.device), start)
         chol = torch.cat([self.readout.initial_cholesky((n, 1)), chol], dim=1)
-        return run.estimates, CovarianceReadout.covariance(chol)
+        return estimates, CovarianceReadout.covariance(chol)
 
-    def init_state(self, batch: int, device=None) -> CalibratedState:
-        return CalibratedState(
-            self.observer.init_state(batch, device), self.readout.initial_memory(batch, device)
-        )
+    def init_state(self, batch: int, device=None, estimate: torch.Tensor | None = None
+                   ) -> CalibratedState:
+        """The observer's start (``estimate``: a measured one) and the readout's fresh memory."""
+        return CalibratedState(self.observer.init_state(batch, device, estimate),
+                               self.readout.initial_memory(batch, device))
 
-    def step(self, state: CalibratedState, y: torch.Tensor, u: torch.Tensor | None = None):
-        """One online step: ``(new state, P (B, n, n))``."""
+    def step(self, state: CalibratedState, y: torch.Tensor, u: torch.Tensor | None = None,
+             context: torch.Tensor | None = None):
+        """One online step: ``(new state, P (B, n, n))``; ``context`` ``(B, context)``."""
         obs = self.observer.step(state.observer, y, u)
-        z = self.inputs(obs.estimate.flatten(1), y, u, obs.hidden)
-        chol, memory = self.readout.cholesky(z.unsqueeze(1), state.memory, state.observer.steps)
+        z = self.inputs(obs.estimate.flatten(1), y, u, obs.hidden, context) \
+            if isinstance(self.observer, ResidualObserver) else self.inputs(None, y, u, None, context)  # fmt: skip
+        chol, memory = self.readout.cholesky(z.unsqueeze(1), state.memory, steps_taken(state.observer))
         return CalibratedState(obs, memory), CovarianceReadout.covariance(chol[:, 0])
 
     def online_step_module(self) -> nn.Module:
@@ -351,8 +415,9 @@ class CalibratedObserver(nn.Module):
 
 class CalibratedStep(nn.Module):
     """:class:`manifold_nets.deploy.OnlineStep` of the observer, then ``P``:
-    ``(x, *state, memory[, clock_steps], y[, u]) -> (x_next, *state_next, memory_next
-    [, clock_steps_next], P)`` (``P`` ``(B, n, n)``, float64). A readout with a clock reads the
+    ``(x, *state, memory[, clock_steps], y[, u][, context]) -> (x_next, *state_next,
+    memory_next[, clock_steps_next], P)`` (``P`` ``(B, n, n)``, float64; ``context`` for a
+    readout that reads some). A readout with a clock reads the
     steps taken from the observer's own ``steps`` state tensor where it has one (a centred head,
     a step decay), else from ``clock_steps`` ``(B,)`` (float64), one more state tensor. Each
     module sits at one place in it (``step.observer``, ``readout``): ``torch.export``'s
@@ -363,8 +428,10 @@ class CalibratedStep(nn.Module):
         super().__init__()
         self.step = calibrated.observer.online_step_module()
         self.readout = calibrated.readout
-        self.layers = len(calibrated.observer.core.initial_hidden(1))
-        self.own_count = bool(self.readout.clock) and not self.step.clock
+        obs = calibrated.observer
+        self.layers = len(obs.core.initial_hidden(1)) if isinstance(obs, ResidualObserver) else 0
+        self.clocked = bool(getattr(self.step, "clock", False))  # the observer counts its steps
+        self.own_count = bool(self.readout.clock) and not self.clocked
 
     def initial_state(self, batch: int = 1):
         steps = (torch.zeros(batch, dtype=torch.float64),) if self.own_count else ()
@@ -374,11 +441,13 @@ class CalibratedStep(nn.Module):
         k = self.step.num_hidden  # the observer's state tensors after x, then the memory
         state, memory = args[:k], args[k]
         steps, rest = (args[k + 1], args[k + 2 :]) if self.own_count else (None, args[k + 1 :])
+        context, rest = (rest[-1], rest[:-1]) if self.readout.context else (None, rest)
         out = self.step(x, *state, *rest)
         u = rest[1] if len(rest) > 1 else None
         z = readout_inputs(self.step.observer, self.readout.source, out[0], rest[0], u,
                            out[1 : 1 + self.layers])
-        start = steps if steps is not None else state[-1] if self.step.clock else 0
+        z = with_context(self.readout, z, context)
+        start = steps if steps is not None else state[-1] if self.clocked else 0
         chol, memory = self.readout.cholesky(z.unsqueeze(1), memory, start)
         count = () if steps is None else (steps + 1,)
         return (*out, memory, *count, CovarianceReadout.covariance(chol[:, 0]))
