@@ -136,7 +136,7 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
     runs = (tmp / "r1_s0", tmp / "r2_tilt")
     observer = load_observer(runs[0]).observer
     args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=[",".join(map(str, runs))], window=16,
-                              data_dir=None)  # fmt: skip
+                              data_dir=None, context=0)  # fmt: skip
     parts = _cross_fitted(args, observer)
     assert [k for k, _ in parts] == [0, 1]
     got = Sequences.cat([seqs for _, seqs in parts])
@@ -171,23 +171,26 @@ def test_the_cross_conformal_scale_reads_each_folds_errors_under_a_readout_fitte
     import torch
 
     from manifold_nets import load_observer
-    from manifold_nets.covariance_training import Sequences, step_nees
+    from manifold_nets.covariance_training import Sequences, mean_nll, step_nees
     from manifold_nets_examples.broad.calibration import _cross_conformal, _cross_fitted, _fit
 
     tmp, f1, f2 = folds
     runs = (tmp / "r1_s0", tmp / "r2_tilt")
     observer = load_observer(runs[0]).observer
     args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=[",".join(map(str, runs))] * 2,
-                              window=16, data_dir=None, epochs=2, seed=5)  # fmt: skip
+                              window=16, data_dir=None, epochs=2, seed=5, context=0)  # fmt: skip
     parts = _cross_fitted(args, observer)
-    got = _cross_conformal(parts, observer, args)
+    got, nll = _cross_conformal(parts, observer, args)
     torch.manual_seed(123)  # the fits seed themselves: the global state does not matter
-    want = []
+    want, total, count = [], 0.0, 0
     for k in (0, 1):  # by hand: fitted to the other fold's errors (both seeds'), read on fold k
         rest = Sequences.cat([s for j, s in parts if j != k])
         readout, _ = _fit(rest, rest, observer, "readings", args)
-        want.append(step_nees(readout, Sequences.cat([s for j, s in parts if j == k]))["x"])
+        held = Sequences.cat([s for j, s in parts if j == k])
+        want.append(step_nees(readout, held)["x"])
+        total, count = total + mean_nll(readout, held) * int(held.known.sum()), count + int(held.known.sum())
     assert set(got) == {"x"} and torch.equal(got["x"], torch.cat(want))
+    assert nll == pytest.approx(total / count, rel=1e-12)  # the held-out NLL, step-weighted
     assert len(got["x"]) == int(Sequences.cat([s for _, s in parts]).known.sum())
 
 
@@ -195,9 +198,27 @@ def test_the_cross_fitted_calibration_refuses_a_hidden_state_source(tmp_path):
     from manifold_nets_examples.broad import calibration
 
     with pytest.raises(SystemExit, match="--fit cv takes --sources readings"):
-        calibration.main(["--fit", "cv", "--out", str(tmp_path / "c"), "--folds", "a.yaml",
-                          "--cv-runs", "r"])  # fmt: skip
+        calibration.main(["--fit", "cv", "--sources", "readings", "hidden", "--out",
+                          str(tmp_path / "c"), "--folds", "a.yaml", "--cv-runs", "r"])  # fmt: skip
     with pytest.raises(SystemExit, match="give two folds or more"):
         calibration.main(["--fit", "cv", "--sources", "readings", "--conformal", "1", "--out",
                           str(tmp_path / "c"), "--folds", "a.yaml", "--cv-runs", "r"])  # fmt: skip
     assert not (tmp_path / "c").exists()
+
+
+def test_an_ensemble_folder_is_checked_member_by_member(folds):
+    """An ensemble folder (members/<name>/, each a run folder) is of a fold when every member
+    is; one member of another fold, or a hostile folder, is refused naming it."""
+    tmp, f1, f2 = folds
+    ens = tmp / "ens_f2"
+    for name in ("s0", "s1"):
+        shutil.copytree(tmp / "r2_s0", ens / "members" / name)
+    crossval.check_run_fold(ens, ["b"], f2)
+    with pytest.raises(ValueError, match="s0.*in the order of --folds"):
+        crossval.check_run_fold(ens, ["a"], f1)
+    shutil.copytree(tmp / "r1_s0", ens / "members" / "s2")  # a member of fold 1
+    with pytest.raises(ValueError, match="s2.*not fold"):
+        crossval.check_run_fold(ens, ["b"], f2)
+    (ens / "config.yaml").write_text("name: x\n")
+    with pytest.raises(ValueError, match="both a config.yaml and members/"):
+        crossval.check_run_fold(ens, ["b"], f2)

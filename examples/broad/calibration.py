@@ -5,10 +5,11 @@
     python -m manifold_nets_examples.broad.calibration --out outputs/broad_calibration
     python -m manifold_nets_examples.broad.calibration --sources readings --epochs 2 --out /tmp/bc
 
-The observer (``--observer``, one observer's run folder; default the first member of the
-ensemble ``zoo:broad/attitude``, ``members/seed3``) stays frozen; it measures no group
-factor (it reads the IMU), so the readout reads either the IMU readings of each step
-(``readings``) or the core's hidden state (``hidden``). For each ``--sources`` a readout
+The observer (``--observer``: a run folder or an ensemble folder; default the zoo's
+``broad/attitude``, an ensemble of three) stays frozen; it measures no group factor (it reads
+the IMU), so the readout reads either the IMU readings of each step (``readings``; the only
+source of an ensemble, whose members have no one core) or one observer's hidden state
+(``hidden``). For each ``--sources`` a readout
 (per-factor blocks, a 32-wide memory) is fitted to the attitude errors ``Log(Rhat^T R_ref)`` on
 the training trials (``--fit val``: the validation trials, which the observer was not trained on;
 cut into windows of ``--window`` observer steps; the reference's unknown samples left out), the
@@ -54,7 +55,6 @@ from manifold_nets.covariance_training import (
 from manifold_nets.observer import (
     CalibratedObserver, CovarianceReadout, EnsembleObserver,
 )
-from manifold_nets.loading import ensemble_members
 from manifold_nets.observer.covariance import input_width
 from manifold_nets.plugins import zoo_path
 from manifold_nets.threads import use_threads
@@ -86,6 +86,37 @@ def _decimated(trials, system, moving: bool = False):
                 for t in trials]
         data.mask = data.mask & torch.as_tensor(np.stack(move) > 0)
     return data
+
+
+#: What ``--context 1`` gives a readout: per observer step, the logs of how far the raw
+#: accelerometer (m/s^2) and gyroscope (rad/s) samples of the step's block spread.
+CONTEXT = ("log acc block spread", "log gyr block spread")
+
+
+def block_spread(trial, k: int) -> np.ndarray:
+    """``(J, 2)`` float32 for the ``J = (T - 1) // k`` observer steps of ``trial``: step ``j``
+    covers samples ``jk + 1 .. (j + 1) k`` (:func:`.rate.decimate`); the logs of the norms of
+    the raw accelerometer's and gyroscope's per-axis standard deviations over them. A vibration
+    shows here (phone vibration: 6-8 m/s^2 against 0.3-3.7 in every other BROAD trial, median
+    over the steps) and nowhere in what the observer reads (the accelerometer low-passed, the
+    gyroscope integrated over the step)."""
+    j = (len(trial) - 1) // k
+    out = []
+    for raw, floor in ((trial.acc, 1e-3), (trial.gyr, 1e-4)):
+        blocks = np.asarray(raw[1 : j * k + 1], dtype=np.float64).reshape(j, k, 3)
+        out.append(np.log(np.linalg.norm(blocks.std(axis=1), axis=-1) + floor))
+    return np.stack(out, -1).astype(np.float32)
+
+
+def _context(trials, system, length: int) -> torch.Tensor:
+    """``(N, length, 2)``: :func:`block_spread` of each trial at ``system``'s decimation, padded
+    with zeros to ``length`` steps (padded steps are masked out)."""
+    k = decimation(system, trials[0].rate)
+    out = torch.zeros(len(trials), length, len(CONTEXT))
+    for i, t in enumerate(trials):
+        c = torch.from_numpy(block_spread(t, k))[:length]
+        out[i, : len(c)] = c
+    return out
 
 
 def _windows(seqs: Sequences, window: int) -> Sequences:
@@ -132,17 +163,29 @@ def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
                          f"a step, --observer {input_width(observer, 'readings')}.")
     start = measured_start(system) if input_settings(system)["magnetometer"] \
         else tilt_start(system)  # fmt: skip
-    data = _decimated(read_trials(args.data_dir or data_dir, names), system)
-    return _windows(readout_sequences(obs, data, "readings", skip=1, start=start), args.window)
+    trials = read_trials(args.data_dir or data_dir, names)
+    data = _decimated(trials, system)
+    context = _context(trials, system, data.length) if args.context else None
+    return _windows(readout_sequences(obs, data, "readings", skip=1, start=start, context=context),
+                    args.window)
+
+
+def _sequences_of(args, observer, system, trials, start):
+    """``source -> Sequences`` of ``trials`` (a function: each source reads them afresh)."""
+    data = _decimated(trials, system)
+    context = _context(trials, system, data.length) if args.context else None
+    return lambda source: readout_sequences(observer, data, source, skip=1, start=start,
+                                            context=context)
 
 
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True)
     p.add_argument("--observer", default=None,
-                   help="one observer's run folder (default: the first member of the zoo's "
-                   "broad/attitude ensemble)")
-    p.add_argument("--sources", nargs="+", default=["readings", "hidden"], choices=["readings", "hidden"])
+                   help="a run folder or an ensemble folder (default: the zoo's broad/attitude)")
+    p.add_argument("--sources", nargs="+", default=None, choices=["readings", "hidden"],
+                   help="what the readout reads (default: readings and hidden for one "
+                   "observer, readings for an ensemble)")
     p.add_argument("--epochs", type=int, default=30)
     p.add_argument("--window", type=int, default=400, help="observer steps per training window")
     p.add_argument("--fit", default="train", choices=["train", "val", "cv"],
@@ -156,6 +199,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="1: scale the readout so that held-out errors fall inside its 3-sigma "
                         "ellipsoid at the Gaussian share, 97.1 %% (the other split's; with "
                         "--fit cv each fold's errors under a readout fitted to the other folds')")
+    p.add_argument("--context", type=int, choices=(0, 1), default=0,
+                   help="1: the readout also reads how far each step's raw samples spread "
+                        "(block_spread: the accelerometer's and the gyroscope's)")
     p.add_argument("--seed", type=int, default=0,
                    help="the readouts' initial weights and batch order")
     p.add_argument("--data-dir", default=None)
@@ -165,28 +211,33 @@ def _parser() -> argparse.ArgumentParser:
 
 def _fit(train: Sequences, val: Sequences, observer, source: str, args):
     torch.manual_seed(args.seed)  # the readout's initial weights (torch seeds itself at random)
-    readout = CovarianceReadout(observer.group, input_width(observer, source), "factor", 32, source)
+    readout = CovarianceReadout(observer.group, input_width(observer, source), "factor", 32, source,
+                                context=len(CONTEXT) if args.context else 0)
     history = fit_covariance(readout, _windows(train, args.window), val, epochs=args.epochs,
                              lr=3e-3, batch_size=4, seed=args.seed)
     return readout, history
 
 
-def _cross_conformal(parts, observer, args) -> dict:
-    """Each fold's errors' NEES under a readout fitted to the other folds' errors."""
-    q = {}
+def _cross_conformal(parts, observer, args) -> tuple[dict, float]:
+    """Each fold's errors' NEES under a readout fitted to the other folds' errors, and their
+    mean NLL (over all the folds' known steps) under those readouts."""
+    q, total, count = {}, 0.0, 0
     for k in sorted({k for k, _ in parts}):
         rest = Sequences.cat([seqs for j, seqs in parts if j != k])
         readout, _ = _fit(rest, rest, observer, "readings", args)
         held = Sequences.cat([seqs for j, seqs in parts if j == k])
         for name, values in step_nees(readout, held).items():
             q.setdefault(name, []).append(values)
-    return {name: torch.cat(v) for name, v in q.items()}
+        steps = int(held.known.sum())
+        total, count = total + mean_nll(readout, held) * steps, count + steps
+    return {name: torch.cat(v) for name, v in q.items()}, total / count
 
 
 def main(argv=None) -> None:
     args = _parser().parse_args(argv)
     use_threads(args.threads)
-    if args.fit == "cv" and (args.sources != ["readings"] or not args.folds or not args.cv_runs):
+    if args.fit == "cv" and (args.sources not in (None, ["readings"]) or not args.folds
+                             or not args.cv_runs):
         raise SystemExit("error: --fit cv takes --sources readings (each fold's observer has a "
                          "hidden state of its own), --folds and --cv-runs.")
     if args.conformal and args.fit == "cv" and len([f for f in args.folds.split(",") if f]) < 2:
@@ -195,32 +246,31 @@ def main(argv=None) -> None:
     data_dir, split = split_trials(None)
     data_dir = args.data_dir or data_dir
     if args.observer is None:
-        args.observer = str(ensemble_members(zoo_path("broad/attitude"))[0])
+        args.observer = str(zoo_path("broad/attitude"))
     observer, system, _ = load_observer(args.observer)
-    if isinstance(observer, EnsembleObserver):
-        raise ValueError(
-            f"--observer {args.observer} is an ensemble of {len(observer.members)} observers; a "
-            "covariance readout reads one observer's core: give one member's run folder "
-            "(members/<name> inside it)."
+    ensemble = isinstance(observer, EnsembleObserver)
+    if args.sources is None:
+        args.sources = ["readings"] if ensemble or args.fit == "cv" else ["readings", "hidden"]
+    if ensemble and "hidden" in args.sources:
+        raise SystemExit(
+            f"error: --observer {args.observer} is an ensemble of {len(observer.members)} "
+            "observers, whose members have no one core to read: use --sources readings, or give "
+            "one member's run folder (members/<name> inside it) for a hidden-state readout."
         )
     start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
     if args.fit == "cv":  # the training and validation trials come through the folds' runs
         parts = _cross_fitted(args, observer)
         cv = Sequences.cat([seqs for _, seqs in parts])
     else:
-        cv, data = None, {s: _decimated(read_trials(data_dir, split[s]), system)
-                          for s in ("train", "val")}  # fmt: skip
+        cv, data = None, {s: _sequences_of(args, observer, system, read_trials(data_dir, split[s]),
+                                           start) for s in ("train", "val")}  # fmt: skip
     test_trials = read_trials(data_dir, split["test"])
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     fits, held, best = {}, {}, None
     for source in args.sources:
         other = "val" if args.fit == "train" else "train"
-        if cv is not None:
-            train = val = cv
-        else:
-            train, val = (readout_sequences(observer, data[s], source, skip=1, start=start)
-                          for s in (args.fit, other))
+        train, val = (cv, cv) if cv is not None else (data[args.fit](source), data[other](source))
         readout, history = _fit(train, val, observer, source, args)
         fits[source], held[source] = {"val_nll": mean_nll(readout, val), "history": history}, val
         print(source, "validation NLL", fits[source]["val_nll"], flush=True)
@@ -228,14 +278,16 @@ def main(argv=None) -> None:
             best = (source, readout)
     source, readout = best
     test = _decimated(test_trials, system, moving=True)
+    context = _context(test_trials, system, test.length) if args.context else None
     result = {"observer": args.observer, "source": source, "fits": fits,
-              **_scored(observer, readout, test, test_trials, start)}
+              **_scored(observer, readout, test, test_trials, start, context)}
     if args.conformal:
         before = result
-        scales = scale_to_share(readout, _cross_conformal(parts, observer, args) if cv is not None
-                                else held[source])
-        result = {**before, "scales": scales, "unscaled": {"trials": before["trials"],
-                  "mean": before["mean"]}, **_scored(observer, readout, test, test_trials, start)}
+        if cv is not None:
+            q, result["cross_fitted_nll"] = _cross_conformal(parts, observer, args)
+        scales = scale_to_share(readout, q if cv is not None else held[source])
+        result = {**result, "scales": scales, "unscaled": {"trials": before["trials"],
+                  "mean": before["mean"]}, **_scored(observer, readout, test, test_trials, start, context)}
     save_readout(out / "covariance.pt", readout, args.observer)
     write_text_atomic(out / "broad_calibration.json", json.dumps(result, indent=1))
     text = _report(result, args, argv)
@@ -243,12 +295,12 @@ def main(argv=None) -> None:
     print(text)
 
 
-def _scored(observer, readout, test, test_trials, start) -> dict:
+def _scored(observer, readout, test, test_trials, start, context=None) -> dict:
     """Each test trial's NEES / 3 and shares inside 1, 2, 3 sigma, and their means."""
     cal = CalibratedObserver(observer, readout).eval()
     state = observer.init_state(len(test), estimate=start(test))
     with torch.no_grad():
-        est, cov = cal(test.measurements, test.inputs, state=state)
+        est, cov = cal(test.measurements, test.inputs, state=state, context=context)
     xi = tangent_errors(observer.group, est, test.states)
     q = nees(xi[:, 1:], cov[:, 1:])  # (N, T): d = 3
     rows = {}
@@ -270,6 +322,9 @@ def _report(result: dict, args, argv) -> str:
     if "scales" in result:
         lines += ["", "Scaled to hold the Gaussian 3-sigma share on held-out errors (conformal): "
                   "P x " + ", ".join(f"{v:.3f} ({k})" for k, v in result["scales"].items()) + "."]
+    if "cross_fitted_nll" in result:
+        lines += ["", "Held-out NLL, each fold's errors under a readout fitted to the other folds': "
+                  f"{result['cross_fitted_nll']:.3f}."]
     lines += ["", "| trial | steps | NEES / 3 | in 1 sigma | in 2 sigma | in 3 sigma |",
               "|---|---|---|---|---|---|"]
     rows = [*result["trials"].items(), ("mean over trials", result["mean"])]

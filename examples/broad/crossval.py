@@ -80,7 +80,17 @@ def check_run_fold(run: Path, held: list[str], fold: str) -> None:
     """Raises ``ValueError`` unless ``run`` was trained with a split whose held-out trials are
     ``held``: the trials ``broad.train`` recorded (``split.yaml``), or for a run without that
     file the split file its ``command.json`` names (relative to the working directory; none: the
-    default trials.yaml)."""
+    default trials.yaml); an ensemble folder's every member so."""
+    from manifold_nets.loading import ArtefactError, ensemble_members
+
+    try:
+        members = ensemble_members(Path(run))
+    except ArtefactError as err:
+        raise ValueError(f"--runs {run}: {err}") from None
+    if members is not None:
+        for member in members:
+            check_run_fold(member, held, fold)
+        return
     try:
         if (Path(run) / "split.yaml").exists():
             _, splits = split_trials(_small_file(Path(run) / "split.yaml", "the run's"))
