@@ -46,6 +46,20 @@ def test_the_folders_are_mapped_to_their_import_names():
     assert SETUPTOOLS["package-dir"][""] == "."
 
 
+def test_the_examples_folder_refuses_its_folder_name():
+    """``python -m examples.broad.train`` from a checkout would define every class a second time
+    under ``examples.*`` and record that name in its run folder, which no loader accepts: the
+    import is refused naming the command that works."""
+    import subprocess
+    import sys
+
+    run = subprocess.run([sys.executable, "-c", "import examples.broad.simulator"], cwd=ROOT,
+                         capture_output=True, text=True)
+    assert run.returncode != 0
+    assert "python -m manifold_nets_examples.broad.train" in run.stderr, run.stderr[-2000:]
+    importlib.import_module("manifold_nets_examples.broad.simulator")  # the installed name works
+
+
 def test_every_package_and_config_group_is_listed():
     listed = set(SETUPTOOLS["packages"])
     assert listed == _expected_packages()
