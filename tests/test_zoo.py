@@ -4,10 +4,11 @@ Each entry loads by name (``zoo:rigid_body/nominal``) without an import by hand 
 executing anything its files name, and reproduces the outputs recorded before the observer was
 rebuilt from pieces (``tests/fixtures/zoo_reference.npz``, by
 ``tests/fixtures/record_zoo_reference.py``; ``rigid_body/paper`` when it entered the zoo): its
-rollout and online step to 1e-10, and its exported step the rollout to 1e-10 (the old exported
-step computed the centring ramp in float32 and was up to 1.7e-6 off the rollout; today all three
-share one schedule). On fresh data of its own
-system each entry beats the raw measurement.
+rollout within 1e-5 (on the CPU that recorded them it reproduced them to 1e-10; another CPU's
+float32 arithmetic moves them by up to 2e-6), and its online and exported
+steps this machine's rollout to 1e-10 (the old exported step computed the centring ramp in
+float32 and was up to 1.7e-6 off the rollout; today all three share one schedule). On fresh
+data of its own system each entry beats the raw measurement.
 """
 
 from __future__ import annotations
@@ -88,9 +89,18 @@ def test_an_entry_reproduces_its_recorded_outputs(name):
     reference = np.load(FIXTURES / "zoo_reference.npz")
     observer, system, _ = load_observer(f"zoo:{name}")
     out = outputs(observer, system)
-    np.testing.assert_array_equal(out["measurements"], reference[f"{name}:measurements"])
-    for key, recorded in (("rollout", "rollout"), ("online", "online"), ("exported", "rollout")):
-        np.testing.assert_allclose(out[key], reference[f"{name}:{recorded}"], rtol=0, atol=1e-10,
+    # The record was made on one CPU. On another, vectorised float64 kernels (sin, exp, ...) may
+    # round the last bit differently and float32 ones (the network) more: measured on an AMD EPYC
+    # against the record, the data 3.3e-16, the estimates 1.3e-6 to 2.0e-6 (rigid body, 80 closed-
+    # loop steps of a float32 network) and 9.4e-10 (broad/attitude). So: the data to 1e-13, the
+    # rollout to the record within 1e-5, and the online and exported steps to this machine's
+    # rollout within 1e-10 (the three code paths agree to the last digits on any machine).
+    np.testing.assert_allclose(out["measurements"], reference[f"{name}:measurements"], rtol=0,
+                               atol=1e-13)
+    np.testing.assert_allclose(out["rollout"], reference[f"{name}:rollout"], rtol=0, atol=1e-5,
+                               err_msg=f"{name}: rollout")
+    for key in ("online", "exported"):
+        np.testing.assert_allclose(out[key], out["rollout"], rtol=0, atol=1e-10,
                                    err_msg=f"{name}: {key}")
 
 
