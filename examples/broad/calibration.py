@@ -317,7 +317,9 @@ def _scored(observer, readout, test, test_trials, start, context=None) -> dict:
 def _report(result: dict, args, argv) -> str:
     fits, source = result["fits"], result["source"]
     lines = ["# BROAD: calibration of the learned attitude covariance on the test trials", "",
-             f"Observer `{args.observer}`, readout source `{source}` (validation NLL: " + ", ".join(
+             f"Observer `{args.observer}`, readout source `{source}`"
+             + (" with the context (`block_spread`)" if args.context else "") + " (validation NLL: "
+             + ", ".join(
                  f"{s} {f['val_nll']:.3f}" for s, f in fits.items()) + ")."]
     if "scales" in result:
         lines += ["", "Scaled to hold the Gaussian 3-sigma share on held-out errors (conformal): "
