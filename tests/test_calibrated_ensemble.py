@@ -136,3 +136,35 @@ def test_readouts_that_read_one_core_are_refused_for_an_ensemble():
         readout_sequences(ens, data, "hidden")
     with pytest.raises(TypeError, match="got a Linear"):
         CalibratedObserver(torch.nn.Linear(2, 2), _readout())
+
+
+def test_a_filtered_observer_with_a_context_readout_rolls_out_steps_and_exports_alike():
+    """The BROAD member behind its pre-filter (its readings raw, the filter inside), a readout
+    of the raw readings and two numbers of context: rollout, online step and exported step."""
+    from manifold_nets import load_observer
+    from manifold_nets.loading import ensemble_members
+    from manifold_nets.plugins import zoo_path
+
+    filtered = load_observer(ensemble_members(zoo_path("broad/attitude"))[0]).filtered()
+    r = CovarianceReadout(filtered.group, input_width(filtered, "readings"), memory=4,
+                          source="readings", context=2)
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.1)
+    cal = CalibratedObserver(filtered, r)
+    g = torch.Generator().manual_seed(6)
+    y = torch.randn(2, 12, filtered.measurement_dim, generator=g, dtype=torch.float64)
+    u = torch.randn(2, 12, filtered.input_dim, generator=g, dtype=torch.float64)
+    c = torch.randn(2, 12, 2, generator=g)
+    with torch.no_grad():
+        est, cov = cal(y, u, context=c)
+        torch.testing.assert_close(est, filtered(y, u), rtol=0, atol=0)
+        state, step = cal.init_state(2), cal.online_step_module()
+        flat = step.initial_state(2)
+        for k in range(12):
+            state, P = cal.step(state, y[:, k], u[:, k], context=c[:, k])
+            *flat, P_exp = step(*flat, y[:, k], u[:, k], c[:, k])
+            assert steps_taken(state.observer) == k + 1
+            assert_covariances_close(P, cov[:, k + 1])
+            assert_covariances_close(P_exp, cov[:, k + 1])
+            torch.testing.assert_close(flat[0], est[:, k + 1].reshape(2, -1), rtol=0, atol=1e-10)
