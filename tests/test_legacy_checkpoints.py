@@ -22,13 +22,22 @@ from manifold_nets.loading import build_system_safely
 LEGACY = Path(__file__).parent / "fixtures" / "legacy"
 
 
+#: The steps compared: gain_decay's fixture (random weights) is unstable, its estimates growing
+#: tenfold every ten steps and a last-bit difference tenfold every five: beyond step 25 the
+#: rollouts of two CPUs part (measured: 2.6e-6 of (1 + |x|) at step 25, 70 % at step 60).
+STEPS = {"all_pieces": 60, "gain_decay": 25}
+
+
 @pytest.mark.parametrize("name", ["all_pieces", "gain_decay"])
 def test_a_first_format_checkpoint_loads_and_reproduces_its_estimates(name):
+    """On the CPU that recorded them the estimates were reproduced to 1e-10; another CPU's float32
+    arithmetic moves them by up to 4.8e-6 of (1 + |x|) (AMD EPYC), so: within 1e-5 of that."""
     observer, _, _ = load_observer(LEGACY / name)
     ref = np.load(LEGACY / name / "reference.npz")
     with torch.no_grad():
         est = observer(torch.from_numpy(ref["measurements"])).flatten(2)
-    np.testing.assert_allclose(est.numpy(), ref["rollout"], rtol=0, atol=1e-10)
+    n = STEPS[name] + 1
+    np.testing.assert_allclose(est.numpy()[:, :n], ref["rollout"][:, :n], rtol=1e-5, atol=1e-5)
 
 
 def test_a_first_format_checkpoint_refuses_another_observer():
