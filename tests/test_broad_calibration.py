@@ -9,7 +9,7 @@ from pathlib import Path
 import torch
 
 from manifold_nets import load_observer
-from manifold_nets_examples.broad.calibration import _decimated
+from manifold_nets_examples.broad.calibration import observer_readings
 from manifold_nets_examples.broad.data import read_trial
 from manifold_nets_examples.broad.evaluate import decimation, input_settings, pad_trials
 from manifold_nets_examples.broad.prefilter import prefiltered
@@ -29,7 +29,7 @@ def test_the_zoo_observer_is_calibrated_on_the_readings_it_was_trained_on():
         pad_trials([prefiltered(trial, reads["acc_lowpass"], reads["rest_bias"],
                                 reads["acc_lowpass_order"])])[0], k, 1.0 / trial.rate
     )
-    got = _decimated([trial], system)
+    got = observer_readings([trial], system)
     assert torch.equal(got.measurements, want.measurements) and torch.equal(got.inputs, want.inputs)
     assert torch.equal(got.states, want.states) and torch.equal(got.mask, want.mask)
     assert not torch.equal(got.measurements, raw.measurements)  # the filter changed the readings
@@ -38,7 +38,7 @@ def test_the_zoo_observer_is_calibrated_on_the_readings_it_was_trained_on():
 def test_a_6d_observer_is_calibrated_without_the_magnetometer():
     _, system, _ = load_observer("zoo:broad/attitude")
     system.magnetometer = False
-    got = _decimated([read_trial(FIXTURE)], system)
+    got = observer_readings([read_trial(FIXTURE)], system)
     assert not got.measurements[..., 3:6].any() and got.measurements[..., :3].abs().sum() > 0
 
 

@@ -128,7 +128,7 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
 
     from manifold_nets import load_observer
     from manifold_nets.covariance_training import Sequences, readout_sequences
-    from manifold_nets_examples.broad.calibration import _cross_fitted, _decimated, _windows
+    from manifold_nets_examples.broad.calibration import _cross_fitted, observer_readings, _windows
     from manifold_nets_examples.broad.data import read_trials
     from manifold_nets_examples.broad.learning import measured_start
 
@@ -143,7 +143,7 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
 
     def through(run, name):
         obs, system, _ = load_observer(run)
-        data = _decimated(read_trials(tmp / "mat", [name]), system)
+        data = observer_readings(read_trials(tmp / "mat", [name]), system)
         return _windows(readout_sequences(obs, data, "readings", skip=1,
                                           start=measured_start(system)), 16)  # fmt: skip
 

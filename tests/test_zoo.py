@@ -47,7 +47,7 @@ def test_the_zoo_is_these_entries_and_at_most_eight_checkpoints_ship():
     checkpoints = [p for p in shipped if p.parent.name == "checkpoints"]
     readouts = sorted(p.parent for p in shipped if p.name == "covariance.pt")
     assert len(checkpoints) <= 8, checkpoints
-    assert readouts == sorted(zoo_path(n) for n in COVARIANCES)
+    assert readouts == sorted(zoo_path(n) for n in [*COVARIANCES, "broad/attitude"])
     assert len(shipped) == len(checkpoints) + len(readouts), shipped
 
 
@@ -162,3 +162,32 @@ def test_an_entry_s_covariance_loads_and_is_calibrated_on_fresh_data(name):
     out = calibration(system.group, xi, cov[:, 10:])
     for factor in ("R", "p"):
         assert 0.75 < out[factor].anees < 1.33, (name, factor, out[factor].anees)
+
+
+def test_the_broad_entry_s_covariance_reads_the_raw_samples_spread():
+    """broad/attitude's readout (the ensemble's, docs/calibration.md) on the committed excerpt:
+    the ensemble's estimates unchanged, a covariance at every step, and the context read: the
+    same readings with a block of vibration (the raw accelerometer shaken within each step, the
+    observer's low-passed readings hardly moved) give a larger covariance there."""
+    import dataclasses
+
+    from manifold_nets_examples.broad.calibration import estimate_with_covariance
+    from manifold_nets_examples.broad.data import read_trial
+
+    trial = read_trial(FIXTURES / "broad" / "excerpt.mat")
+    observer, _, _ = load_observer("zoo:broad/attitude")
+    assert (zoo_path("broad/attitude") / "covariance.pt").stat().st_size < 2**20
+    assert "covariance.pt" in (zoo_path("broad/attitude") / "card.md").read_text()
+    est, cov, data = estimate_with_covariance([trial])
+    with torch.no_grad():
+        start = observer.init_state(1, estimate=est[:, 0])
+        torch.testing.assert_close(est, observer(data.measurements, data.inputs, state=start),
+                                   rtol=0, atol=0)
+    assert cov.shape == (1, data.length + 1, 3, 3) and torch.isfinite(cov).all()
+    assert torch.linalg.eigvalsh(cov).min() > 0
+    shaken = trial.acc.copy()
+    shaken[1::2] += 5.0  # +-2.5 m/s^2 about the mean at every other sample
+    _, cov_shaken, _ = estimate_with_covariance([dataclasses.replace(trial, acc=shaken)])
+    trace = torch.diagonal(cov, dim1=-2, dim2=-1).sum(-1)[0, 50:]
+    trace_shaken = torch.diagonal(cov_shaken, dim1=-2, dim2=-1).sum(-1)[0, 50:]
+    assert float(np.median((trace_shaken / trace).numpy())) > 2.0

@@ -66,10 +66,10 @@ from .learning import measured_start, tilt_start, without_magnetometer
 from .prefilter import prefiltered
 from .rate import decimate
 
-__all__ = ["main"]
+__all__ = ["main", "estimate_with_covariance", "observer_readings", "step_context", "block_spread"]
 
 
-def _decimated(trials, system, moving: bool = False):
+def observer_readings(trials, system, moving: bool = False):
     """The trials as the observer of ``system`` reads them (pre-filtered, without the
     magnetometer where it was trained so: :func:`.evaluate.input_settings`), decimated to its
     steps."""
@@ -108,7 +108,7 @@ def block_spread(trial, k: int) -> np.ndarray:
     return np.stack(out, -1).astype(np.float32)
 
 
-def _context(trials, system, length: int) -> torch.Tensor:
+def step_context(trials, system, length: int) -> torch.Tensor:
     """``(N, length, 2)``: :func:`block_spread` of each trial at ``system``'s decimation, padded
     with zeros to ``length`` steps (padded steps are masked out)."""
     k = decimation(system, trials[0].rate)
@@ -117,6 +117,27 @@ def _context(trials, system, length: int) -> torch.Tensor:
         c = torch.from_numpy(block_spread(t, k))[:length]
         out[i, : len(c)] = c
     return out
+
+
+def estimate_with_covariance(trials, folder=None, readout=None):
+    """The observer of ``folder`` (default: the zoo's ``broad/attitude``) and its covariance
+    readout (default: ``covariance.pt`` in the folder) on BROAD ``trials`` read as it was
+    trained (:func:`observer_readings`, with :func:`step_context` for a readout that reads it),
+    from TRIAD of each trial's first sample: ``(estimates (N, J+1, 3, 3), covariances (N, J+1,
+    3, 3), data)`` at the observer's ``J`` steps (every ``k``-th sample), ``data`` their
+    :class:`~manifold_nets.data.TrajectoryDataset` (the reference, its mask)."""
+    from manifold_nets.covariance_training import load_readout
+
+    folder = zoo_path("broad/attitude") if folder is None else Path(folder)
+    observer, system, _ = load_observer(folder)
+    calibrated = load_readout(folder / "covariance.pt" if readout is None else readout, observer)
+    data = observer_readings(trials, system)
+    context = step_context(trials, system, data.length) if calibrated.readout.context else None
+    start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
+    state = observer.init_state(len(data), estimate=start(data))
+    with torch.no_grad():
+        est, cov = calibrated.eval()(data.measurements, data.inputs, state=state, context=context)
+    return est, cov, data
 
 
 def _windows(seqs: Sequences, window: int) -> Sequences:
@@ -164,16 +185,16 @@ def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
     start = measured_start(system) if input_settings(system)["magnetometer"] \
         else tilt_start(system)  # fmt: skip
     trials = read_trials(args.data_dir or data_dir, names)
-    data = _decimated(trials, system)
-    context = _context(trials, system, data.length) if args.context else None
+    data = observer_readings(trials, system)
+    context = step_context(trials, system, data.length) if args.context else None
     return _windows(readout_sequences(obs, data, "readings", skip=1, start=start, context=context),
                     args.window)
 
 
 def _sequences_of(args, observer, system, trials, start):
     """``source -> Sequences`` of ``trials`` (a function: each source reads them afresh)."""
-    data = _decimated(trials, system)
-    context = _context(trials, system, data.length) if args.context else None
+    data = observer_readings(trials, system)
+    context = step_context(trials, system, data.length) if args.context else None
     return lambda source: readout_sequences(observer, data, source, skip=1, start=start,
                                             context=context)
 
@@ -277,8 +298,8 @@ def main(argv=None) -> None:
         if best is None or fits[source]["val_nll"] < fits[best[0]]["val_nll"]:
             best = (source, readout)
     source, readout = best
-    test = _decimated(test_trials, system, moving=True)
-    context = _context(test_trials, system, test.length) if args.context else None
+    test = observer_readings(test_trials, system, moving=True)
+    context = step_context(test_trials, system, test.length) if args.context else None
     result = {"observer": args.observer, "source": source, "fits": fits,
               **_scored(observer, readout, test, test_trials, start, context)}
     if args.conformal:
