@@ -75,35 +75,3 @@ def test_block_spread_reads_the_raw_samples_of_each_observer_step():
     assert np.all(np.delete(c[:, 0], 2) == np.float32(np.log(1e-3)))
     np.testing.assert_allclose(np.exp(c[4, 1]) - 1e-4, np.linspace(0, 0.7, k).std(), rtol=1e-5)
     assert np.all(np.delete(c[:, 1], 4) == np.float32(np.log(1e-4)))
-
-
-def test_field_deviation_reads_the_strength_and_dip_of_each_step_s_mean_field():
-    """A field of the expected strength and dip gives the floor; one step's block with the field
-    doubled, another's tilted 30 deg further down, show in their own steps, in their own column."""
-    import numpy as np
-
-    from manifold_nets_examples.broad.calibration import field_deviation, step_context
-    from manifold_nets_examples.broad.data import Trial
-
-    T, k, strength, dip = 8 * 4 + 1, 8, 40.0, 60.0
-    acc = np.tile([0.0, 0.0, 9.81], (T, 1))  # "up" is +z
-    d = np.radians(dip)
-    mag = np.tile([strength * np.cos(d), 0.0, -strength * np.sin(d)], (T, 1))
-    mag[1 * k + 1 : 2 * k + 1] *= 2.0  # step 1: twice the strength
-    d2 = np.radians(dip + 30.0)  # step 3: 30 deg steeper (straight down)
-    mag[3 * k + 1 : 4 * k + 1] = [strength * np.cos(d2), 0.0, -strength * np.sin(d2)]
-    trial = Trial("t", np.zeros((T, 3)), acc, mag, np.tile([1.0, 0, 0, 0], (T, 1)),
-                  np.ones(T, bool), 285.7)
-    f = field_deviation(trial, k, strength, dip)
-    assert f.shape == (4, 2) and f.dtype == np.float32
-    floor = np.float32(np.log(1e-3))
-    np.testing.assert_allclose(f[[0, 2], :], floor, atol=1e-4)
-    np.testing.assert_allclose(np.exp(f[1]) - 1e-3, [1.0, 0.0], atol=1e-5)  # strength only
-    np.testing.assert_allclose(np.exp(f[3]) - 1e-3, [0.0, np.radians(30.0)], atol=1e-5)
-
-    class System:  # what step_context reads of a system
-        dt, magnetic_strength, magnetic_dip_deg = k / 285.7, strength, dip
-
-    c = step_context([trial], System(), 6, which=2)
-    assert c.shape == (1, 6, 4) and not c[0, 4:].any()  # padded with zeros
-    torch.testing.assert_close(c[0, :4, 2:], torch.from_numpy(f))

@@ -89,12 +89,8 @@ def observer_readings(trials, system, moving: bool = False):
 
 
 #: What ``--context 1`` gives a readout: per observer step, the logs of how far the raw
-#: accelerometer (m/s^2) and gyroscope (rad/s) samples of the step's block spread; ``--context 2``
-#: adds how far the block's mean magnetic field is from the system's (strength and dip).
-CONTEXTS = {
-    1: ("log acc block spread", "log gyr block spread"),
-    2: ("log acc block spread", "log gyr block spread", "log field strength off", "log dip off"),
-}
+#: accelerometer (m/s^2) and gyroscope (rad/s) samples of the step's block spread.
+CONTEXT = ("log acc block spread", "log gyr block spread")
 
 
 def block_spread(trial, k: int) -> np.ndarray:
@@ -112,33 +108,13 @@ def block_spread(trial, k: int) -> np.ndarray:
     return np.stack(out, -1).astype(np.float32)
 
 
-def field_deviation(trial, k: int, strength: float, dip_deg: float) -> np.ndarray:
-    """``(J, 2)`` float32 for the observer steps of ``trial`` (as :func:`block_spread`): the
-    logs of how far the block's mean magnetometer reading is from the expected field, in
-    strength (``| |m| / strength - 1 |``) and in dip (``|asin(-m.a / |m||a|) - dip|``, rad, the
-    accelerometer's block mean taken for up). A magnet near the sensor moves both."""
-    j = (len(trial) - 1) // k
-    m = np.asarray(trial.mag[1 : j * k + 1], dtype=np.float64).reshape(j, k, 3).mean(1)
-    a = np.asarray(trial.acc[1 : j * k + 1], dtype=np.float64).reshape(j, k, 3).mean(1)
-    norm_m = np.linalg.norm(m, axis=-1).clip(1e-9)
-    cos = -(m * a).sum(-1) / (norm_m * np.linalg.norm(a, axis=-1).clip(1e-9))
-    dip = np.arcsin(cos.clip(-1.0, 1.0))
-    off = (np.abs(norm_m / strength - 1.0), np.abs(dip - np.radians(dip_deg)))
-    return np.log(np.stack(off, -1) + 1e-3).astype(np.float32)
-
-
-def step_context(trials, system, length: int, which: int = 1) -> torch.Tensor:
-    """``(N, length, C)``: the context ``which`` (:data:`CONTEXTS`: :func:`block_spread`, and for
-    2 :func:`field_deviation` at ``system``'s field) of each trial at ``system``'s decimation,
-    padded with zeros to ``length`` steps (padded steps are masked out)."""
+def step_context(trials, system, length: int) -> torch.Tensor:
+    """``(N, length, 2)``: :func:`block_spread` of each trial at ``system``'s decimation, padded
+    with zeros to ``length`` steps (padded steps are masked out)."""
     k = decimation(system, trials[0].rate)
-    out = torch.zeros(len(trials), length, len(CONTEXTS[which]))
+    out = torch.zeros(len(trials), length, len(CONTEXT))
     for i, t in enumerate(trials):
-        c = block_spread(t, k)
-        if which == 2:
-            c = np.concatenate([c, field_deviation(t, k, system.magnetic_strength,
-                                                   system.magnetic_dip_deg)], -1)
-        c = torch.from_numpy(c)[:length]
+        c = torch.from_numpy(block_spread(t, k))[:length]
         out[i, : len(c)] = c
     return out
 
@@ -156,11 +132,7 @@ def estimate_with_covariance(trials, folder=None, readout=None):
     observer, system, _ = load_observer(folder)
     calibrated = load_readout(folder / "covariance.pt" if readout is None else readout, observer)
     data = observer_readings(trials, system)
-    which = {len(names): w for w, names in CONTEXTS.items()}.get(calibrated.readout.context)
-    if calibrated.readout.context and which is None:
-        raise ValueError(f"the readout reads {calibrated.readout.context} numbers of context; "
-                         f"this command gives {sorted(len(n) for n in CONTEXTS.values())}.")
-    context = step_context(trials, system, data.length, which) if which else None
+    context = step_context(trials, system, data.length) if calibrated.readout.context else None
     start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
     state = observer.init_state(len(data), estimate=start(data))
     with torch.no_grad():
@@ -214,7 +186,7 @@ def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
         else tilt_start(system)  # fmt: skip
     trials = read_trials(args.data_dir or data_dir, names)
     data = observer_readings(trials, system)
-    context = step_context(trials, system, data.length, args.context) if args.context else None
+    context = step_context(trials, system, data.length) if args.context else None
     return _windows(readout_sequences(obs, data, "readings", skip=1, start=start, context=context),
                     args.window)
 
@@ -222,7 +194,7 @@ def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
 def _sequences_of(args, observer, system, trials, start):
     """``source -> Sequences`` of ``trials`` (a function: each source reads them afresh)."""
     data = observer_readings(trials, system)
-    context = step_context(trials, system, data.length, args.context) if args.context else None
+    context = step_context(trials, system, data.length) if args.context else None
     return lambda source: readout_sequences(observer, data, source, skip=1, start=start,
                                             context=context)
 
@@ -248,10 +220,9 @@ def _parser() -> argparse.ArgumentParser:
                    help="1: scale the readout so that held-out errors fall inside its 3-sigma "
                         "ellipsoid at the Gaussian share, 97.1 %% (the other split's; with "
                         "--fit cv each fold's errors under a readout fitted to the other folds')")
-    p.add_argument("--context", type=int, choices=(0, 1, 2), default=0,
+    p.add_argument("--context", type=int, choices=(0, 1), default=0,
                    help="1: the readout also reads how far each step's raw samples spread "
-                        "(block_spread: the accelerometer's and the gyroscope's); 2: and how far "
-                        "the magnetic field is from the system's (field_deviation)")
+                        "(block_spread: the accelerometer's and the gyroscope's)")
     p.add_argument("--seed", type=int, default=0,
                    help="the readouts' initial weights and batch order")
     p.add_argument("--data-dir", default=None)
@@ -262,7 +233,7 @@ def _parser() -> argparse.ArgumentParser:
 def _fit(train: Sequences, val: Sequences, observer, source: str, args):
     torch.manual_seed(args.seed)  # the readout's initial weights (torch seeds itself at random)
     readout = CovarianceReadout(observer.group, input_width(observer, source), "factor", 32, source,
-                                context=len(CONTEXTS[args.context]) if args.context else 0)
+                                context=len(CONTEXT) if args.context else 0)
     history = fit_covariance(readout, _windows(train, args.window), val, epochs=args.epochs,
                              lr=3e-3, batch_size=4, seed=args.seed)
     return readout, history
@@ -328,7 +299,7 @@ def main(argv=None) -> None:
             best = (source, readout)
     source, readout = best
     test = observer_readings(test_trials, system, moving=True)
-    context = step_context(test_trials, system, test.length, args.context) if args.context else None
+    context = step_context(test_trials, system, test.length) if args.context else None
     result = {"observer": args.observer, "source": source, "fits": fits,
               **_scored(observer, readout, test, test_trials, start, context)}
     if args.conformal:
@@ -368,8 +339,7 @@ def _report(result: dict, args, argv) -> str:
     fits, source = result["fits"], result["source"]
     lines = ["# BROAD: calibration of the learned attitude covariance on the test trials", "",
              f"Observer `{args.observer}`, readout source `{source}`"
-             + (f" with the context {list(CONTEXTS[args.context])}" if args.context else "")
-             + " (validation NLL: "
+             + (" with the context (`block_spread`)" if args.context else "") + " (validation NLL: "
              + ", ".join(
                  f"{s} {f['val_nll']:.3f}" for s, f in fits.items()) + ")."]
     if "scales" in result:
