@@ -84,6 +84,37 @@ def test_apply_estimates_a_recording_without_reference(tmp_path, capsys):
     assert np.array_equal(np.load(tmp_path / "own.npy"), np.load(tmp_path / "full.npy"))
 
 
+def test_apply_writes_the_covariance_of_each_step_when_asked(tmp_path, capsys):
+    """--covariance: the zoo entry's readout at every observer step, the sample each belongs to,
+    the quaternions unchanged; what estimate_with_covariance gives in Python."""
+    from manifold_nets_examples.broad.calibration import estimate_with_covariance
+
+    own = _save(tmp_path / "own.mat", {k: v for k, v in _raw().items() if k in IMU})
+    apply_cmd.main(["zoo:broad/attitude", str(own), "--out", str(tmp_path / "q.npy"),
+                    "--covariance", str(tmp_path / "p.npz")])
+    assert "250 covariances (every 8 samples)" in capsys.readouterr().out
+    with np.load(tmp_path / "p.npz", allow_pickle=False) as f:
+        cov, sample = f["covariance"], f["sample"]
+    assert cov.shape == (250, 3, 3) and np.array_equal(sample, np.arange(250) * 8)
+    assert np.all(np.linalg.eigvalsh(cov) > 0)
+    _, want, _ = estimate_with_covariance([read_trial(own, reference=False)])
+    np.testing.assert_array_equal(cov, want[0].numpy())
+    apply_cmd.main(["zoo:broad/attitude", str(own), "--out", str(tmp_path / "plain.npy")])
+    assert np.array_equal(np.load(tmp_path / "q.npy"), np.load(tmp_path / "plain.npy"))
+
+
+def test_apply_refuses_a_covariance_it_cannot_write_or_read_before_any_work(tmp_path, monkeypatch):
+    (tmp_path / "run").mkdir()
+    _no_work(monkeypatch)
+    with pytest.raises(SystemExit, match=r"--covariance .*p\.npy: .*end in \.npz"):
+        apply_cmd.main(["zoo:broad/attitude", str(FIXTURE), "--out", str(tmp_path / "q.npy"),
+                        "--covariance", str(tmp_path / "p.npy")])
+    with pytest.raises(SystemExit, match="holds no covariance.pt; give --readout"):
+        apply_cmd.main([str(tmp_path / "run"), str(FIXTURE), "--out", str(tmp_path / "q.npy"),
+                        "--covariance", str(tmp_path / "p.npz")])
+    assert not (tmp_path / "q.npy").exists() and not (tmp_path / "p.npz").exists()
+
+
 def test_without_movement_every_sample_with_a_reference_is_scored(tmp_path, capsys):
     raw = _raw()
     del raw["movement"]

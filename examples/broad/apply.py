@@ -3,6 +3,8 @@
 ::
 
     python -m manifold_nets_examples.broad.apply zoo:broad/attitude trial.mat --out q.csv
+    python -m manifold_nets_examples.broad.apply zoo:broad/attitude trial.mat --out q.csv \
+        --covariance p.npz              # and the covariance of each step's attitude error
 
 ``trial.mat`` needs only ``imu_gyr``, ``imu_acc``, ``imu_mag`` and ``sampling_rate`` as
 BROAD's files hold them: a recording of one's own IMU has no optical reference. Where the file
@@ -17,6 +19,13 @@ Writes one row per sample, ``w, x, y, z`` (the IMU's orientation in East-North-U
 leaves no half file. ``--out`` is checked before any work (its ending, not a folder, no file in
 its path, a folder that takes a new file); estimates that are NaN or Inf are an error and
 nothing is written. Errors end the command with ``error: ...`` and exit status 1.
+
+``--covariance P.npz`` also writes the covariance of the attitude error at each observer step
+(:func:`.calibration.estimate_with_covariance`; the readout ``--readout``, by default
+``covariance.pt`` in the observer's folder, as the zoo entry ships it): ``covariance``
+``(J+1, 3, 3)`` (float64, of ``Log(R_est^T R)``, radians squared) and ``sample`` ``(J+1,)``, the
+sample each belongs to (every ``k``-th; between them the quaternions are the gyroscope's
+integration from the last step). It runs the observer a second time with its readout.
 """
 
 from __future__ import annotations
@@ -37,7 +46,7 @@ from .data import read_trial
 from .evaluate import decimation, observer_quaternions
 from .metric import rmse
 
-__all__ = ["apply_observer", "write_quaternions"]
+__all__ = ["apply_observer", "write_quaternions", "write_covariances"]
 
 FORMATS = (".npy", ".csv")
 
@@ -57,24 +66,65 @@ def write_quaternions(path: Path, quats: np.ndarray) -> None:
         f.write(data)
 
 
-def apply_observer(observer_path, mat_file, out: Path | None = None) -> dict:
-    """Estimates ``mat_file`` with the observer at ``observer_path``; writes ``out`` when given.
-    Returns ``{"quaternions": (T, 4), "rmse": {...} or None, "scored": samples scored,
-    "movement_in_file": bool}``."""
+def write_covariances(path: Path, covariance: np.ndarray, sample: np.ndarray) -> None:
+    """``covariance`` ``(J+1, 3, 3)`` and ``sample`` ``(J+1,)`` to the ``.npz`` ``path``,
+    atomically."""
+    path = check_destination(path, suffixes=(".npz",), option="--covariance")
+    buf = io.BytesIO()
+    np.savez(buf, covariance=np.ascontiguousarray(covariance, dtype=np.float64),
+             sample=np.ascontiguousarray(sample, dtype=np.int64))
+    with atomic_open(path, "wb") as f:
+        f.write(buf.getvalue())
+
+
+def _readout_of(observer_path, readout) -> tuple[Path, Path]:
+    """The observer's folder and its readout (``readout``, or ``covariance.pt`` in the folder)."""
+    from manifold_nets.plugins import ZOO_PREFIX, zoo_path
+
+    name = str(observer_path)
+    folder = zoo_path(name[len(ZOO_PREFIX):]) if name.startswith(ZOO_PREFIX) else Path(name)
+    if readout is None and not (folder / "covariance.pt").is_file():
+        raise ValueError(f"--covariance: {folder} holds no covariance.pt; give --readout (one "
+                         "that broad.calibration wrote) or an observer folder that ships one.")
+    return folder, Path(readout) if readout is not None else folder / "covariance.pt"
+
+
+def apply_observer(observer_path, mat_file, out: Path | None = None,
+                   covariance: Path | None = None, readout=None) -> dict:
+    """Estimates ``mat_file`` with the observer at ``observer_path``; writes ``out`` when given,
+    and the covariances to ``covariance`` (module docstring). Returns ``{"quaternions": (T, 4),
+    "rmse": {...} or None, "scored": samples scored, "movement_in_file": bool}`` (and
+    ``"covariance"``, ``"sample"`` when asked)."""
     if out is not None:  # before any work
         out = check_destination(out, suffixes=FORMATS)
+    if covariance is not None:
+        covariance = check_destination(covariance, suffixes=(".npz",), option="--covariance")
+        folder, readout = _readout_of(observer_path, readout)
     trial = read_trial(mat_file, reference=False)
     observer, system, _ = load_observer(observer_path)
-    decimation(system, trial.rate)  # the observer's step must be whole samples
+    k = decimation(system, trial.rate)  # the observer's step must be whole samples
     quats = observer_quaternions(observer, system, [trial], source=str(observer_path))[0]
+    extra = {}
+    if covariance is not None:
+        from .calibration import estimate_with_covariance
+
+        _, cov, _ = estimate_with_covariance([trial], folder, readout)
+        cov = cov[0].numpy()
+        if not np.isfinite(cov).all():
+            raise ValueError(f"the covariance of {observer_path} on {mat_file} is not finite; "
+                             "nothing written.")
+        extra = {"covariance": cov, "sample": np.arange(len(cov)) * k, "step": k}
     if out is not None:
         write_quaternions(out, quats)
+    if covariance is not None:
+        write_covariances(covariance, extra["covariance"], extra["sample"])
     scored = int((trial.known & trial.movement).sum())
     return {
         "quaternions": quats,
         "rmse": rmse(quats, trial.quat, trial.movement) if scored else None,
         "scored": scored,
         "movement_in_file": trial.movement_in_file,
+        **extra,
     }
 
 
@@ -83,15 +133,23 @@ def main(argv=None) -> None:
     p.add_argument("observer", help="a run folder of broad.train, or its checkpoint")
     p.add_argument("mat_file", help="a BROAD-format .mat recording")
     p.add_argument("--out", required=True, help="where the quaternions go (.npy or .csv)")
+    p.add_argument("--covariance", default=None,
+                   help="also write each step's attitude covariance here (.npz)")
+    p.add_argument("--readout", default=None,
+                   help="the covariance readout (default: covariance.pt in the observer's folder)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch threads (default: one, or OMP_NUM_THREADS)")
     args = p.parse_args(argv)
     try:
         use_threads(args.threads)
-        res = apply_observer(args.observer, args.mat_file, Path(args.out))
+        res = apply_observer(args.observer, args.mat_file, Path(args.out),
+                             None if args.covariance is None else Path(args.covariance), args.readout)
     except (ValueError, OSError) as err:
         raise SystemExit(f"error: {err}") from None
     print(f"{len(res['quaternions'])} quaternions (w, x, y, z) -> {args.out}")
+    if "covariance" in res:
+        print(f"{len(res['covariance'])} covariances (every {res['step']} samples) -> "
+              f"{args.covariance}")
     if res["rmse"] is None:
         print("no reference in the file (opt_quat, movement): nothing scored")
         return
