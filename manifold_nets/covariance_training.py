@@ -24,7 +24,6 @@ from .data import TrajectoryDataset
 from .observer import CovarianceReadout, ResidualObserver
 from .observer.covariance import gaussian_nll, readout_inputs
 from .progress import progress
-from .training_losses import initial_state
 
 __all__ = [
     "Sequences", "readout_sequences", "fit_covariance", "mean_nll", "factor_nees", "scale_to_heldout",
@@ -85,8 +84,8 @@ def readout_sequences(
         for s in range(0, len(data), batch_size):
             part = data[torch.arange(s, min(len(data), s + batch_size))]
             inputs = part.inputs if part.inputs.shape[-1] else None
+            state = None if start is None else observer.init_state(len(part), estimate=start(part))
             if isinstance(observer, ResidualObserver):
-                state = initial_state(observer, part, start)
                 run = observer.rollout(part.measurements, inputs, state=state, keep_hidden=True)
                 estimates = run.estimates
                 z = readout_inputs(
@@ -94,7 +93,6 @@ def readout_sequences(
                     tuple(h[:, 1:] for h in run.hidden),
                 )
             else:  # an ensemble or a filtered observer: its own rollout, its readings
-                state = None if start is None else observer.init_state(len(part), estimate=start(part))
                 estimates = observer(part.measurements, inputs, state=state)
                 z = readout_inputs(observer, source, None, part.measurements, inputs, None)
             if context is not None:

@@ -136,3 +136,20 @@ def assert_covariances_close(got: torch.Tensor, want: torch.Tensor, tol: float =
     s = want.diagonal(dim1=-2, dim2=-1).sqrt()
     scale = s.unsqueeze(-1) * s.unsqueeze(-2)
     torch.testing.assert_close(got / scale, want / scale, rtol=0, atol=tol)
+
+
+def noisy_walk(group, n: int, t: int, step: float, noise, seed: int = 0):
+    """States ``(n, t+1, *element_shape)`` of a random walk on ``group`` (``step`` rad per axis
+    and step) and measurements ``(n, t, embedding_dim)``: each state's embedding after a tangent
+    perturbation of std ``noise`` (a number, or ``(n,)``, one per sequence). float64."""
+    g = torch.Generator().manual_seed(seed)
+    d = group.tangent_dim
+    sd = torch.as_tensor(noise, dtype=torch.float64)
+    sd = sd[:, None] if sd.dim() else sd
+    x = group.random((n,), generator=g, dtype=torch.float64)
+    states, ys = [x], []
+    for _ in range(t):
+        x = group.rplus(x, step * torch.randn(n, d, generator=g, dtype=torch.float64))
+        states.append(x)
+        ys.append(group.embed(group.rplus(x, sd * torch.randn(n, d, generator=g, dtype=torch.float64))))
+    return torch.stack(states, 1), torch.stack(ys, 1)

@@ -20,7 +20,7 @@ from manifold_nets.observer import (
     CalibratedObserver, CovarianceReadout, EnsembleObserver, Measurement, ResidualObserver,
 )
 from manifold_nets.observer.covariance import input_width, steps_taken
-from observer_checks import assert_covariances_close
+from observer_checks import assert_covariances_close, noisy_walk
 
 GROUP = Product(SO3(), Euclidean(3), names=("R", "p"))
 
@@ -40,15 +40,7 @@ def _ensemble(k: int = 3) -> EnsembleObserver:
 
 def _walk(n: int, t: int, seed: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
     """States ``(n, t+1, 4, 4)`` of a random walk and noisy measurements ``(n, t, 12)``."""
-    g = torch.Generator().manual_seed(seed)
-    x = GROUP.random((n,), generator=g, dtype=torch.float64)
-    states, ys = [x], []
-    for _ in range(t):
-        x = GROUP.rplus(x, 0.1 * torch.randn(n, 6, generator=g, dtype=torch.float64))
-        states.append(x)
-        noisy = GROUP.rplus(x, 0.05 * torch.randn(n, 6, generator=g, dtype=torch.float64))
-        ys.append(GROUP.embed(noisy))
-    return torch.stack(states, 1), torch.stack(ys, 1)
+    return noisy_walk(GROUP, n, t, step=0.1, noise=0.05, seed=seed)
 
 
 def _readout(clock=()) -> CovarianceReadout:

@@ -16,7 +16,7 @@ from manifold_nets.data import TrajectoryDataset
 from manifold_nets.observer import (
     CalibratedObserver, CovarianceReadout, EnsembleObserver, ResidualObserver,
 )
-from observer_checks import assert_covariances_close, randomise_head
+from observer_checks import assert_covariances_close, noisy_walk, randomise_head
 
 GROUP = SO3()
 
@@ -38,15 +38,7 @@ def _readout(context: int = 2, memory: int = 4) -> CovarianceReadout:
 
 def _walk(n: int, t: int, noise: torch.Tensor, seed: int = 0):
     """States ``(n, t+1, 3, 3)``, measurements ``(n, t, 9)`` with per-sequence noise ``(n,)``."""
-    g = torch.Generator().manual_seed(seed)
-    x = GROUP.random((n,), generator=g, dtype=torch.float64)
-    states, ys = [x], []
-    for _ in range(t):
-        x = GROUP.rplus(x, 0.05 * torch.randn(n, 3, generator=g, dtype=torch.float64))
-        states.append(x)
-        e = noise.double()[:, None] * torch.randn(n, 3, generator=g, dtype=torch.float64)
-        ys.append(GROUP.embed(GROUP.rplus(x, e)))
-    return torch.stack(states, 1), torch.stack(ys, 1)
+    return noisy_walk(GROUP, n, t, step=0.05, noise=noise, seed=seed)
 
 
 @pytest.mark.parametrize("ensemble", [False, True])

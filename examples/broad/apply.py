@@ -79,10 +79,9 @@ def write_covariances(path: Path, covariance: np.ndarray, sample: np.ndarray) ->
 
 def _readout_of(observer_path, readout) -> tuple[Path, Path]:
     """The observer's folder and its readout (``readout``, or ``covariance.pt`` in the folder)."""
-    from manifold_nets.plugins import ZOO_PREFIX, zoo_path
+    from manifold_nets.plugins import locate
 
-    name = str(observer_path)
-    folder = zoo_path(name[len(ZOO_PREFIX):]) if name.startswith(ZOO_PREFIX) else Path(name)
+    folder = locate(observer_path)
     if readout is None and not (folder / "covariance.pt").is_file():
         raise ValueError(f"--covariance: {folder} holds no covariance.pt; give --readout (one "
                          "that broad.calibration wrote) or an observer folder that ships one.")

@@ -56,7 +56,7 @@ from manifold_nets.observer import (
     CalibratedObserver, CovarianceReadout, EnsembleObserver,
 )
 from manifold_nets.observer.covariance import input_width
-from manifold_nets.plugins import zoo_path
+from manifold_nets.plugins import locate, zoo_path
 from manifold_nets.threads import use_threads
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
@@ -119,6 +119,18 @@ def step_context(trials, system, length: int) -> torch.Tensor:
     return out
 
 
+def _start(system):
+    """Where a whole trial starts: TRIAD of its first sample, or its tilt for a 6-D observer."""
+    return measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
+
+
+def _read(trials, system, context: bool, moving: bool = False):
+    """``(data, context or None)``: :func:`observer_readings` of ``trials`` and, when asked,
+    their :func:`step_context` over its steps."""
+    data = observer_readings(trials, system, moving)
+    return data, step_context(trials, system, data.length) if context else None
+
+
 def estimate_with_covariance(trials, folder=None, readout=None):
     """The observer of ``folder`` (default: the zoo's ``broad/attitude``) and its covariance
     readout (default: ``covariance.pt`` in the folder) on BROAD ``trials`` read as it was
@@ -128,13 +140,11 @@ def estimate_with_covariance(trials, folder=None, readout=None):
     :class:`~manifold_nets.data.TrajectoryDataset` (the reference, its mask)."""
     from manifold_nets.covariance_training import load_readout
 
-    folder = zoo_path("broad/attitude") if folder is None else Path(folder)
+    folder = locate(folder or "zoo:broad/attitude")
     observer, system, _ = load_observer(folder)
     calibrated = load_readout(folder / "covariance.pt" if readout is None else readout, observer)
-    data = observer_readings(trials, system)
-    context = step_context(trials, system, data.length) if calibrated.readout.context else None
-    start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
-    state = observer.init_state(len(data), estimate=start(data))
+    data, context = _read(trials, system, bool(calibrated.readout.context))
+    state = observer.init_state(len(data), estimate=_start(system)(data))
     with torch.no_grad():
         est, cov = calibrated.eval()(data.measurements, data.inputs, state=state, context=context)
     return est, cov, data
@@ -182,19 +192,14 @@ def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
     if input_width(obs, "readings") != input_width(observer, "readings"):
         raise ValueError(f"--cv-runs {run}: reads {input_width(obs, 'readings')} numbers "
                          f"a step, --observer {input_width(observer, 'readings')}.")
-    start = measured_start(system) if input_settings(system)["magnetometer"] \
-        else tilt_start(system)  # fmt: skip
-    trials = read_trials(args.data_dir or data_dir, names)
-    data = observer_readings(trials, system)
-    context = step_context(trials, system, data.length) if args.context else None
-    return _windows(readout_sequences(obs, data, "readings", skip=1, start=start, context=context),
-                    args.window)
+    data, context = _read(read_trials(args.data_dir or data_dir, names), system, args.context)
+    return _windows(readout_sequences(obs, data, "readings", skip=1, start=_start(system),
+                                      context=context), args.window)
 
 
 def _sequences_of(args, observer, system, trials, start):
     """``source -> Sequences`` of ``trials`` (a function: each source reads them afresh)."""
-    data = observer_readings(trials, system)
-    context = step_context(trials, system, data.length) if args.context else None
+    data, context = _read(trials, system, args.context)
     return lambda source: readout_sequences(observer, data, source, skip=1, start=start,
                                             context=context)
 
@@ -278,7 +283,7 @@ def main(argv=None) -> None:
             "observers, whose members have no one core to read: use --sources readings, or give "
             "one member's run folder (members/<name> inside it) for a hidden-state readout."
         )
-    start = measured_start(system) if input_settings(system)["magnetometer"] else tilt_start(system)
+    start = _start(system)
     if args.fit == "cv":  # the training and validation trials come through the folds' runs
         parts = _cross_fitted(args, observer)
         cv = Sequences.cat([seqs for _, seqs in parts])
@@ -298,8 +303,7 @@ def main(argv=None) -> None:
         if best is None or fits[source]["val_nll"] < fits[best[0]]["val_nll"]:
             best = (source, readout)
     source, readout = best
-    test = observer_readings(test_trials, system, moving=True)
-    context = step_context(test_trials, system, test.length) if args.context else None
+    test, context = _read(test_trials, system, args.context, moving=True)
     result = {"observer": args.observer, "source": source, "fits": fits,
               **_scored(observer, readout, test, test_trials, start, context)}
     if args.conformal:
