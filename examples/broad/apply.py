@@ -25,7 +25,8 @@ nothing is written. Errors end the command with ``error: ...`` and exit status 1
 ``covariance.pt`` in the observer's folder, as the zoo entry ships it): ``covariance``
 ``(J+1, 3, 3)`` (float64, of ``Log(R_est^T R)``, radians squared) and ``sample`` ``(J+1,)``, the
 sample each belongs to (every ``k``-th; between them the quaternions are the gyroscope's
-integration from the last step). It runs the observer a second time with its readout.
+integration from the last step). One rollout of the observer with its readout gives the
+quaternions and the covariances (the readout reads the run, it does not change it).
 """
 
 from __future__ import annotations
@@ -43,7 +44,7 @@ from manifold_nets.threads import use_threads
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
 from .data import read_trial
-from .evaluate import decimation, observer_quaternions
+from .evaluate import decimation, observer_quaternions, quaternions_from, readings_batch
 from .metric import rmse
 
 __all__ = ["apply_observer", "write_quaternions", "write_covariances"]
@@ -102,12 +103,15 @@ def apply_observer(observer_path, mat_file, out: Path | None = None,
     trial = read_trial(mat_file, reference=False)
     observer, system, _ = load_observer(observer_path)
     k = decimation(system, trial.rate)  # the observer's step must be whole samples
-    quats = observer_quaternions(observer, system, [trial], source=str(observer_path))[0]
     extra = {}
-    if covariance is not None:
+    if covariance is None:
+        quats = observer_quaternions(observer, system, [trial], source=str(observer_path))[0]
+    else:  # one rollout gives both: the readout reads the observer's run, it does not move it
         from .calibration import estimate_with_covariance
 
-        _, cov, _ = estimate_with_covariance([trial], folder, readout)
+        est, cov, _ = estimate_with_covariance([trial], folder, readout)
+        batch, lengths = readings_batch([trial], system)
+        quats = quaternions_from(est, batch, lengths, [trial], k, str(observer_path))[0]
         cov = cov[0].numpy()
         if not np.isfinite(cov).all():
             raise ValueError(f"the covariance of {observer_path} on {mat_file} is not finite; "

@@ -61,9 +61,8 @@ from manifold_nets.threads import use_threads
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
 from .data import read_trials, split_trials
-from .evaluate import decimation, input_settings, pad_trials
+from .evaluate import decimation, input_settings, readings_batch
 from .learning import measured_start, tilt_start, without_magnetometer
-from .prefilter import prefiltered
 from .rate import decimate
 
 __all__ = ["main", "estimate_with_covariance", "observer_readings", "step_context", "block_spread"]
@@ -73,12 +72,10 @@ def observer_readings(trials, system, moving: bool = False):
     """The trials as the observer of ``system`` reads them (pre-filtered, without the
     magnetometer where it was trained so: :func:`.evaluate.input_settings`), decimated to its
     steps."""
-    reads = input_settings(system)
-    batch, _ = pad_trials([prefiltered(t, reads["acc_lowpass"], reads["rest_bias"],
-                                       reads["acc_lowpass_order"]) for t in trials])
+    batch, _ = readings_batch(trials, system)
     k = decimation(system, trials[0].rate)
     data = decimate(batch, k, 1.0 / trials[0].rate)
-    if not reads["magnetometer"]:
+    if not input_settings(system)["magnetometer"]:
         data = without_magnetometer(data)
     if moving:  # the benchmark's samples: reference known and the IMU moving
         length = data.length

@@ -42,7 +42,7 @@ from .prefilter import prefiltered
 from .rate import decimate, upsample
 
 __all__ = [
-    "pad_trials", "observer_quaternions", "check_scored", "chosen_splits", "evaluate_run",
+    "pad_trials", "readings_batch", "quaternions_from", "observer_quaternions", "check_scored", "chosen_splits", "evaluate_run",
     "input_settings",
 ]
 
@@ -78,24 +78,27 @@ def decimation(system, rate: float) -> int:
     return k
 
 
-def observer_quaternions(
-    observer, system, trials: list[Trial], source: str = "the observer"
+def readings_batch(trials: list[Trial], system) -> tuple[TrajectoryDataset, list[int]]:
+    """The trials as the observer of ``system`` reads them at full rate (pre-filtered by
+    :mod:`.prefilter` as :func:`input_settings` says), padded into one batch
+    (:func:`pad_trials`: the batch and each trial's number of samples)."""
+    reads = input_settings(system)
+    return pad_trials([prefiltered(t, reads["acc_lowpass"], reads["rest_bias"],
+                                   reads["acc_lowpass_order"]) for t in trials])
+
+
+def quaternions_from(
+    estimates: torch.Tensor, batch: TrajectoryDataset, lengths: list[int], trials: list[Trial],
+    k: int, source: str = "the observer",
 ) -> list[np.ndarray]:
-    """The observer's quaternions ``(T_i, 4)`` per trial, one per sample (between the
-    observer's steps, the gyroscope integrated from its last estimate: :mod:`.rate`), reading
-    the trials as the system says (:func:`input_settings`): a 6-D observer reads no
-    magnetometer and starts from the tilt; pre-filtered readings by :mod:`.prefilter`.
+    """Per trial ``(T_i, 4)`` quaternions, one per sample, from the observer's ``estimates``
+    ``(N, J+1, 3, 3)`` at every ``k``-th sample of :func:`readings_batch`'s ``batch``: between
+    them the gyroscope integrated from the last estimate (:func:`.rate.upsample`).
 
     ``ValueError`` naming ``source`` and the trial where an estimate is NaN or Inf (NaN
     weights, a diverging observer): a file of NaN quaternions is never the answer."""
-    reads = input_settings(system)
-    batch, lengths = pad_trials(
-        [prefiltered(t, reads["acc_lowpass"], reads["rest_bias"], reads["acc_lowpass_order"])
-         for t in trials])
-    k = decimation(system, trials[0].rate)
-    dt = 1.0 / trials[0].rate
-    R = estimate_rotations(observer, system, decimate(batch, k, dt), reads["magnetometer"])
-    R = upsample(R, batch.inputs.to(R), dt, k)
+    R = estimates.to(torch.float64)
+    R = upsample(R, batch.inputs.to(R), 1.0 / trials[0].rate, k)
     q = matrix_to_quat(R.numpy())
     out = [q[i, :n] for i, n in enumerate(lengths)]
     for t, qt in zip(trials, out):
@@ -107,6 +110,19 @@ def observer_quaternions(
                 "nothing was written."
             )
     return out
+
+
+def observer_quaternions(
+    observer, system, trials: list[Trial], source: str = "the observer"
+) -> list[np.ndarray]:
+    """The observer's quaternions ``(T_i, 4)`` per trial, one per sample
+    (:func:`quaternions_from`), reading the trials as the system says (:func:`readings_batch`):
+    a 6-D observer reads no magnetometer and starts from the tilt."""
+    batch, lengths = readings_batch(trials, system)
+    k = decimation(system, trials[0].rate)
+    R = estimate_rotations(observer, system, decimate(batch, k, 1.0 / trials[0].rate),
+                           input_settings(system)["magnetometer"])
+    return quaternions_from(R, batch, lengths, trials, k, source)
 
 
 def check_scored(trials: list[Trial], what: str) -> None:
