@@ -1,0 +1,181 @@
+"""Is the learned filter's gap to VQF larger than the trials' own scatter? A paired comparison
+over BROAD's trials.
+
+Run by hand from the repository root (not by CI), with BROAD's ``.mat`` files where the split
+file says, the three cross-validation folds' ensembles and the 6-D tables in ``docs/``::
+
+    python benchmarks/broad_paired.py \\
+        --cv-runs runs/il/E_f1,runs/il/E_f2,runs/il/E_f3 \\
+        --write benchmarks/results/broad_paired.md
+
+9-D: the shipped configuration (TIW9, an ensemble of seeds 3-5; each ``--cv-runs`` folder an
+ensemble folder, ``members/<name>`` run folders, one per fold of ``configs/broad/cv/``), each of
+the 15 cross-validation trials estimated by the ensemble of the fold that held it out, the 8 test
+trials by the first folder's (the zoo entry's members: fold 1 is the fixed split); the seeds'
+estimates averaged as ``broad.seeds --ensemble`` does. VQF (online, default settings) on the
+same trials. Only the 4 validation trials (fold 1) and the 8 test trials are unseen by every
+stage of these observers: the folds' runs are fine-tuned from one start (RLB9) that trained on
+the fixed split's training trials, which are folds 2 and 3's held-out trials, so the
+cross-validation rows are optimistic for the learned filter. The validation trials were not
+trained on, but they chose among configurations and among the three ensembles of the
+configuration (seeds 3-5, the lowest validation total), so only the test rows are free of
+selection. 6-D: TIL6's per-trial inclination
+(mean over its three seeds) and VQF 6-D's from ``docs/real_data/loss6_{val,test}/metrics.json``
+(TIL6's stages trained on the 11 training trials only).
+
+For each set and metric: both means, the mean of the per-trial differences (learned - VQF) with
+its 95 % Student-t interval, the trials where the learned filter is lower, and the two-sided
+p-value of the exact sign-flip (permutation) test of a zero mean difference.
+"""
+
+from __future__ import annotations
+
+import argparse
+import itertools
+import json
+import os
+from pathlib import Path
+
+os.environ.setdefault("OMP_NUM_THREADS", "1")
+
+import numpy as np  # noqa: E402
+from scipy import stats  # noqa: E402
+
+from manifold_nets.atomic import write_text_atomic  # noqa: E402
+from manifold_nets_examples.broad.compare import ATTRIBUTION, METRICS  # noqa: E402
+from manifold_nets_examples.broad.crossval import fold_trials  # noqa: E402
+from manifold_nets_examples.broad.data import read_trials, split_trials  # noqa: E402
+from manifold_nets_examples.broad.metric import rmse  # noqa: E402
+from manifold_nets_examples.broad.reference import vqf_9d  # noqa: E402
+from manifold_nets_examples.broad.seeds import ensemble, run_estimates  # noqa: E402
+
+FOLDS = [f"configs/broad/cv/fold{k}.yaml" for k in (1, 2, 3)]
+
+
+def paired(learned: dict, reference: dict) -> dict:
+    """Per-trial values ``{trial: x}`` of two methods on the same trials -> the paired figures
+    (module docstring). The sign-flip test enumerates all ``2^n`` sign patterns."""
+    names = sorted(reference)
+    if sorted(learned) != names:
+        raise ValueError(f"the two methods were scored on different trials: {sorted(learned)} "
+                         f"against {names}.")
+    d = np.array([learned[n] - reference[n] for n in names])
+    n = len(d)
+    half = stats.t.ppf(0.975, n - 1) * d.std(ddof=1) / np.sqrt(n)
+    p = sign_flip_p(d)
+    return {"trials": n, "learned": float(np.mean([learned[k] for k in names])),
+            "reference": float(np.mean([reference[k] for k in names])),
+            "difference": float(d.mean()), "ci95": [float(d.mean() - half), float(d.mean() + half)],
+            "lower": int((d < 0).sum()), "p_sign_flip": p}
+
+
+def _sums(d: np.ndarray) -> np.ndarray:
+    """Every signed sum ``sum_i s_i d_i``, ``s_i = +-1`` (``2^len(d)`` of them)."""
+    return np.array(list(itertools.product((1.0, -1.0), repeat=len(d)))) @ d
+
+
+def sign_flip_p(d: np.ndarray) -> float:
+    """The share of the ``2^n`` sign patterns whose signed sum is at least ``|sum d|`` in size
+    (meet in the middle: the two halves' sums, one sorted, counted by bisection)."""
+    a, b = _sums(d[: len(d) // 2]), np.sort(_sums(d[len(d) // 2:]))
+    t = abs(d.sum()) - 1e-12 * np.abs(d).sum()
+    count = (len(b) - np.searchsorted(b, t - a, "left")) + np.searchsorted(b, -t - a, "right")
+    return float(count.sum() / (len(a) * len(b)))
+
+
+def _scored(quats, trials) -> dict:
+    return {t.name: rmse(q, t.quat, t.movement) for q, t in zip(quats, trials)}
+
+
+def _members(folder: Path) -> list[Path]:
+    return sorted(p for p in (folder / "members").iterdir() if p.is_dir())
+
+
+def nine_d(cv_runs: list[Path], data_dir: str | None) -> dict:
+    """``{set: {"learned": {trial: metrics}, "vqf": {...}}}`` for ``cv`` and ``test``."""
+    default_dir, split = split_trials(None)
+    folds_dir, held = fold_trials(FOLDS)
+    sets = {"cv": {}, "test": {}}
+    for folder, names in zip(cv_runs, held):
+        trials = read_trials(data_dir or folds_dir, names)
+        quats = [run_estimates(m, "val", trials) for m in _members(folder)]
+        sets["cv"].update(_scored([ensemble(list(q)) for q in zip(*quats)], trials))
+        print(f"{folder}: {len(trials)} held-out trials", flush=True)
+    test = read_trials(data_dir or default_dir, split["test"])
+    quats = [run_estimates(m, "test", test) for m in _members(cv_runs[0])]
+    sets["test"] = _scored([ensemble(list(q)) for q in zip(*quats)], test)
+    cv_trials = read_trials(data_dir or folds_dir, [n for names in held for n in names])
+    return {"cv": {"learned": sets["cv"], "vqf": _scored(vqf_9d(cv_trials), cv_trials)},
+            "test": {"learned": sets["test"], "vqf": _scored(vqf_9d(test), test)}}
+
+
+def six_d(root: Path) -> dict:
+    """TIL6 and VQF 6-D per-trial inclination on validation and test, from the docs' tables."""
+    out = {}
+    for name in ("val", "test"):
+        table = json.loads((root / f"loss6_{name}" / "metrics.json").read_text())["inclination"]
+        out[name] = {m: {k: v for k, v in table[src].items() if k[:2].isdigit()}
+                     for m, src in (("learned", "TIL6"), ("vqf", "vqf_6d"))}
+    return out
+
+
+def _row(label: str, metric: str, r: dict) -> str:
+    return (f"| {label} | {metric} | {r['trials']} | {r['learned']:.3f} | {r['reference']:.3f} | "
+            f"{r['difference']:+.3f} [{r['ci95'][0]:+.3f}, {r['ci95'][1]:+.3f}] | "
+            f"{r['lower']} of {r['trials']} | {r['p_sign_flip']:.3f} |")
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--cv-runs", required=True,
+                   help="one ensemble folder per fold of configs/broad/cv/, comma-separated")
+    p.add_argument("--data-dir", default=None)
+    p.add_argument("--docs", default="docs/real_data", help="where the 6-D tables are")
+    p.add_argument("--write", default=None, help="a .md path; the .json beside it")
+    args = p.parse_args(argv)
+    runs = [Path(r) for r in args.cv_runs.split(",") if r]
+    if len(runs) != len(FOLDS):
+        raise SystemExit(f"error: --cv-runs: one ensemble folder per fold ({len(FOLDS)}), got "
+                         f"{len(runs)}.")
+    nine = nine_d(runs, args.data_dir)
+    six = six_d(Path(args.docs))
+    val = set(fold_trials(FOLDS[:1])[1][0])
+    sets = {  # (label, learned, vqf), per metric
+        "9-D, 4 validation trials (fold 1), unseen": {
+            m: {k: v for k, v in nine["cv"][m].items() if k in val} for m in ("learned", "vqf")},
+        "9-D, 8 test trials, unseen": nine["test"],
+        "9-D, the 12 unseen (validation and test)": {
+            m: {**{k: v for k, v in nine["cv"][m].items() if k in val}, **nine["test"][m]}
+            for m in ("learned", "vqf")},
+        "9-D, 15 cross-validation trials (11 seen by the folds' start)": nine["cv"],
+        "9-D, all 23 (11 seen by the start)": {
+            m: {**nine["cv"][m], **nine["test"][m]} for m in ("learned", "vqf")},
+    }
+    result = {label: {m: paired({k: v[m] for k, v in d["learned"].items()},
+                                {k: v[m] for k, v in d["vqf"].items()}) for m in METRICS}
+              for label, d in sets.items()}
+    for name, label in (("val", "6-D TIL6, 4 validation trials, unseen"),
+                        ("test", "6-D TIL6, 8 test trials, unseen"), ("both", "6-D TIL6, the 12 unseen")):
+        d = six[name] if name != "both" else {m: {**six["val"][m], **six["test"][m]}
+                                              for m in ("learned", "vqf")}
+        result[label] = {"inclination": paired(d["learned"], d["vqf"])}
+    lines = ["# BROAD: the learned filter against VQF, paired over trials", "",
+             "Difference: learned - VQF (deg, mean over trials) with its 95 % Student-t interval; "
+             "p: the exact two-sided sign-flip test of a zero mean difference. \"Unseen\": no "
+             "stage of the observer trained on the trial; only the test trials were also left "
+             "out of every choice (benchmarks/broad_paired.py's docstring).",
+             "", "| set | metric | trials | learned | VQF | difference [95 % CI] | learned lower on "
+             "| p |", "|---|---|---|---|---|---|---|---|"]
+    for label, ms in result.items():
+        lines += [_row(label, m, r) for m, r in ms.items()]
+    lines += ["", "Command: `python benchmarks/broad_paired.py " + " ".join(
+        argv if argv is not None else __import__("sys").argv[1:]) + "`", "", ATTRIBUTION, ""]
+    text = "\n".join(lines)
+    print(text)
+    if args.write:
+        write_text_atomic(Path(args.write), text)
+        write_text_atomic(Path(args.write).with_suffix(".json"), json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
