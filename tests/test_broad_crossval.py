@@ -138,8 +138,8 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
     args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=[",".join(map(str, runs))], window=16,
                               data_dir=None, context=0)  # fmt: skip
     parts = _cross_fitted(args, observer)
-    assert [k for k, _ in parts] == [0, 1]
-    got = Sequences.cat([seqs for _, seqs in parts])
+    assert [(k, trial) for k, trial, _ in parts] == [(0, "a"), (1, "b")]
+    got = Sequences.cat([seqs for _, _, seqs in parts])
 
     def through(run, name):
         obs, system, _ = load_observer(run)
@@ -156,8 +156,8 @@ def test_the_cross_fitted_calibration_reads_each_trial_through_the_run_that_did_
     assert not torch.equal(through(runs[0], "b").errors, want[1].errors)
     twice = _cross_fitted(argparse.Namespace(**{**vars(args), "cv_runs": args.cv_runs * 2}),
                           observer)  # fmt: skip
-    assert [k for k, _ in twice] == [0, 1, 0, 1]  # in --cv-runs' order, as fitted
-    assert torch.equal(Sequences.cat([s for _, s in twice]).errors, torch.cat([got.errors] * 2))
+    assert [k for k, _, _ in twice] == [0, 1, 0, 1]  # in --cv-runs' order, as fitted
+    assert torch.equal(Sequences.cat([s for _, _, s in twice]).errors, torch.cat([got.errors] * 2))
     swapped = argparse.Namespace(**{**vars(args), "cv_runs": [f"{runs[1]},{runs[0]}"]})
     with pytest.raises(SystemExit, match="in the order of --folds"):
         _cross_fitted(swapped, observer)
@@ -172,7 +172,10 @@ def test_the_cross_conformal_scale_reads_each_folds_errors_under_a_readout_fitte
 
     from manifold_nets import load_observer
     from manifold_nets.covariance_training import Sequences, mean_nll, step_nees
-    from manifold_nets_examples.broad.calibration import _cross_conformal, _cross_fitted, _fit
+    from manifold_nets.calibration import conformal_scale
+    from manifold_nets_examples.broad.calibration import (
+        _cross_conformal, _cross_fitted, _fit, _held_out_shares,
+    )
 
     tmp, f1, f2 = folds
     runs = (tmp / "r1_s0", tmp / "r2_tilt")
@@ -180,18 +183,31 @@ def test_the_cross_conformal_scale_reads_each_folds_errors_under_a_readout_fitte
     args = argparse.Namespace(folds=f"{f1},{f2}", cv_runs=[",".join(map(str, runs))] * 2,
                               window=16, data_dir=None, epochs=2, seed=5, context=0)  # fmt: skip
     parts = _cross_fitted(args, observer)
-    got, nll = _cross_conformal(parts, observer, args)
+    got, nll, per_trial = _cross_conformal(parts, observer, args)
     torch.manual_seed(123)  # the fits seed themselves: the global state does not matter
     want, total, count = [], 0.0, 0
     for k in (0, 1):  # by hand: fitted to the other fold's errors (both seeds'), read on fold k
-        rest = Sequences.cat([s for j, s in parts if j != k])
+        rest = Sequences.cat([s for j, _, s in parts if j != k])
         readout, _ = _fit(rest, rest, observer, "readings", args)
-        held = Sequences.cat([s for j, s in parts if j == k])
+        held = Sequences.cat([s for j, _, s in parts if j == k])
         want.append(step_nees(readout, held)["x"])
         total, count = total + mean_nll(readout, held) * int(held.known.sum()), count + int(held.known.sum())
     assert set(got) == {"x"} and torch.equal(got["x"], torch.cat(want))
     assert nll == pytest.approx(total / count, rel=1e-12)  # the held-out NLL, step-weighted
-    assert len(got["x"]) == int(Sequences.cat([s for _, s in parts]).known.sum())
+    assert len(got["x"]) == int(Sequences.cat([s for _, _, s in parts]).known.sum())
+    # each trial's own NEES: fold k's trial is k's held-out one, both seeds' in --cv-runs' order
+    assert set(per_trial) == {"a", "b"}
+    for k, trial in ((0, "a"), (1, "b")):
+        torch.testing.assert_close(per_trial[trial]["x"], want[k], rtol=0, atol=0)
+    # each trial's share inside the scaled 3-sigma ellipsoid; weighted by steps, the pooled one
+    scale = conformal_scale(got["x"], 3)
+    shares = _held_out_shares(per_trial, {"x": scale})
+    for k, trial in ((0, "a"), (1, "b")):
+        assert shares[trial]["x"] == {"in_3sigma": float((want[k] <= 9 * scale).double().mean()),
+                                      "steps": len(want[k])}
+    pooled = sum(r["x"]["in_3sigma"] * r["x"]["steps"] for r in shares.values()) / len(got["x"])
+    assert pooled == pytest.approx(float((got["x"] <= 9 * scale).double().mean()), abs=1e-12)
+    assert 0.9 < pooled < 1  # the conformal scale holds the Gaussian share of the pooled errors
 
 
 def test_the_cross_fitted_calibration_refuses_a_hidden_state_source(tmp_path):

@@ -22,7 +22,8 @@ seed; the readings do not depend on the observer, so the readout then serves ``-
 the epoch of lowest NLL on the fitted errors is kept. ``--conformal 1`` then scales the
 readout so that held-out errors fall inside its 3-sigma ellipsoid at the Gaussian share
 (:func:`manifold_nets.covariance_training.scale_to_share`): the other split's errors, or with
-``--fit cv`` each fold's errors under a readout fitted to the other folds' (cross-conformal).
+``--fit cv`` each fold's errors under a readout fitted to the other folds' (cross-conformal;
+the report then also gives each of those trials' share inside the scaled 3-sigma ellipsoid).
 On the test
 trials (never used to fit or choose) each trial's time-averaged NEES / 3 and the share of its
 errors inside the 1, 2 and 3 sigma ellipsoids (Gaussian: 19.9 / 73.9 / 97.1 %) are reported, at
@@ -56,7 +57,7 @@ from manifold_nets.observer import (
     CalibratedObserver, CovarianceReadout, EnsembleObserver,
 )
 from manifold_nets.observer.covariance import input_width
-from manifold_nets.plugins import locate, zoo_path
+from manifold_nets.plugins import locate
 from manifold_nets.threads import use_threads
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
@@ -162,9 +163,9 @@ def _windows(seqs: Sequences, window: int) -> Sequences:
     return out.select(keep.nonzero().squeeze(-1))
 
 
-def _cross_fitted(args, observer) -> list[tuple[int, Sequences]]:
+def _cross_fitted(args, observer) -> list[tuple[int, str, Sequences]]:
     """``--fit cv``'s sequences: each fold's run on the fold's held-out trials (``readings``),
-    every seed's, as ``(fold index, sequences)`` in ``--cv-runs``' order."""
+    every seed's, as ``(fold index, trial, sequences)`` in ``--cv-runs``' order."""
     from .crossval import fold_trials
 
     folds = [f for f in args.folds.split(",") if f]
@@ -174,14 +175,16 @@ def _cross_fitted(args, observer) -> list[tuple[int, Sequences]]:
         if any(len(runs) != len(folds) for runs in sets):
             raise ValueError(f"--cv-runs: one run per fold ({len(folds)}) each time, got "
                              f"{[len(runs) for runs in sets]}.")
-        return [(k, _fold_sequences(args, observer, run, names, fold, data_dir))
-                for runs in sets for k, (run, names, fold) in enumerate(zip(runs, held, folds))]
+        return [(k, name, seqs) for runs in sets
+                for k, (run, names, fold) in enumerate(zip(runs, held, folds))
+                for name, seqs in _fold_sequences(args, observer, run, names, fold, data_dir)]
     except (ValueError, OSError) as err:
         raise SystemExit(f"error: {err}") from None
 
 
-def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
-    """One fold's run on its held-out trials, in windows (the folds' trials differ in length)."""
+def _fold_sequences(args, observer, run, names, fold, data_dir) -> list[tuple[str, Sequences]]:
+    """One fold's run on its held-out trials (one batch), each trial's in windows (the folds'
+    trials differ in length)."""
     from .crossval import check_run_fold
 
     check_run_fold(run, names, fold)
@@ -190,8 +193,9 @@ def _fold_sequences(args, observer, run, names, fold, data_dir) -> Sequences:
         raise ValueError(f"--cv-runs {run}: reads {input_width(obs, 'readings')} numbers "
                          f"a step, --observer {input_width(observer, 'readings')}.")
     data, context = _read(read_trials(args.data_dir or data_dir, names), system, args.context)
-    return _windows(readout_sequences(obs, data, "readings", skip=1, start=_start(system),
-                                      context=context), args.window)
+    seqs = readout_sequences(obs, data, "readings", skip=1, start=_start(system), context=context)
+    return [(name, _windows(seqs.select(torch.tensor([i])), args.window))
+            for i, name in enumerate(names)]
 
 
 def _sequences_of(args, observer, system, trials, start):
@@ -241,19 +245,33 @@ def _fit(train: Sequences, val: Sequences, observer, source: str, args):
     return readout, history
 
 
-def _cross_conformal(parts, observer, args) -> tuple[dict, float]:
-    """Each fold's errors' NEES under a readout fitted to the other folds' errors, and their
-    mean NLL (over all the folds' known steps) under those readouts."""
-    q, total, count = {}, 0.0, 0
-    for k in sorted({k for k, _ in parts}):
-        rest = Sequences.cat([seqs for j, seqs in parts if j != k])
+def _cross_conformal(parts, observer, args) -> tuple[dict, float, dict]:
+    """Each fold's errors' NEES under a readout fitted to the other folds' errors, their mean
+    NLL (over all the folds' known steps) under those readouts, and each trial's NEES."""
+    q, per_trial, total, count = {}, {}, 0.0, 0
+    for k in sorted({k for k, _, _ in parts}):
+        rest = Sequences.cat([seqs for j, _, seqs in parts if j != k])
         readout, _ = _fit(rest, rest, observer, "readings", args)
-        held = Sequences.cat([seqs for j, seqs in parts if j == k])
+        mine = [(trial, seqs) for j, trial, seqs in parts if j == k]
+        held = Sequences.cat([seqs for _, seqs in mine])
+        sizes = [int(seqs.known.sum()) for _, seqs in mine]  # its known steps, trial by trial
         for name, values in step_nees(readout, held).items():
             q.setdefault(name, []).append(values)
+            for (trial, _), part in zip(mine, values.split(sizes)):
+                per_trial.setdefault(trial, {}).setdefault(name, []).append(part)
         steps = int(held.known.sum())
         total, count = total + mean_nll(readout, held) * steps, count + steps
-    return {name: torch.cat(v) for name, v in q.items()}, total / count
+    cat = lambda d: {name: torch.cat(v) for name, v in d.items()}  # noqa: E731
+    return cat(q), total / count, {trial: cat(d) for trial, d in per_trial.items()}
+
+
+def _held_out_shares(per_trial: dict, scales: dict) -> dict:
+    """Each cross-validation trial's share of its held-out errors inside the 3-sigma ellipsoid
+    (NEES <= 9) of the scaled readouts (a NEES ``q`` under ``P`` is ``q / s`` under ``s P``), per
+    factor, and its number of steps."""
+    return {trial: {name: {"in_3sigma": float((v / scales[name] <= 9.0).double().mean()),
+                           "steps": len(v)} for name, v in q.items() if name in scales}
+            for trial, q in per_trial.items()}
 
 
 def main(argv=None) -> None:
@@ -269,7 +287,7 @@ def main(argv=None) -> None:
     data_dir, split = split_trials(None)
     data_dir = args.data_dir or data_dir
     if args.observer is None:
-        args.observer = str(zoo_path("broad/attitude"))
+        args.observer = "zoo:broad/attitude"
     observer, system, _ = load_observer(args.observer)
     ensemble = isinstance(observer, EnsembleObserver)
     if args.sources is None:
@@ -283,7 +301,7 @@ def main(argv=None) -> None:
     start = _start(system)
     if args.fit == "cv":  # the training and validation trials come through the folds' runs
         parts = _cross_fitted(args, observer)
-        cv = Sequences.cat([seqs for _, seqs in parts])
+        cv = Sequences.cat([seqs for _, _, seqs in parts])
     else:
         cv, data = None, {s: _sequences_of(args, observer, system, read_trials(data_dir, split[s]),
                                            start) for s in ("train", "val")}  # fmt: skip
@@ -306,8 +324,10 @@ def main(argv=None) -> None:
     if args.conformal:
         before = result
         if cv is not None:
-            q, result["cross_fitted_nll"] = _cross_conformal(parts, observer, args)
+            q, result["cross_fitted_nll"], per_trial = _cross_conformal(parts, observer, args)
         scales = scale_to_share(readout, q if cv is not None else held[source])
+        if cv is not None:
+            result["cross_fitted_trials"] = _held_out_shares(per_trial, scales)
         result = {**result, "scales": scales, "unscaled": {"trials": before["trials"],
                   "mean": before["mean"]}, **_scored(observer, readout, test, test_trials, start, context)}
     save_readout(out / "covariance.pt", readout, args.observer)
@@ -349,6 +369,12 @@ def _report(result: dict, args, argv) -> str:
     if "cross_fitted_nll" in result:
         lines += ["", "Held-out NLL, each fold's errors under a readout fitted to the other folds': "
                   f"{result['cross_fitted_nll']:.3f}."]
+    if "cross_fitted_trials" in result:
+        shares = result["cross_fitted_trials"]
+        lines += ["", "Each cross-validation trial's held-out errors (under the readout fitted "
+                  "without its fold) inside the scaled 3-sigma ellipsoid: " + ", ".join(
+                      f"{t[:2]} {100 * r['in_3sigma']:.1f} %" for t, f in shares.items()
+                      for r in f.values()) + "."]
     lines += ["", "| trial | steps | NEES / 3 | in 1 sigma | in 2 sigma | in 3 sigma |",
               "|---|---|---|---|---|---|"]
     rows = [*result["trials"].items(), ("mean over trials", result["mean"])]
