@@ -17,6 +17,10 @@ the rows interleaved within each round so that other processes' load hits them a
   decimated rate (:mod:`manifold_nets_examples.broad.rate`) and one ``observer.step`` at batch 1
   (eager, ``torch.inference_mode``): what ``broad.evaluate`` computes, sample by sample;
 * the same for a second run (``--prefiltered-run RUN``), e.g. one with other pre-filters;
+* ``..., step compiled (AOTInductor)``: the same loop, the observer's step exported
+  (``manifold_nets.export_observer``, batch 1) and compiled ahead of time to native code
+  (``torch._inductor.aoti_compile_and_package``; needs a C++ compiler, ``--no-aoti`` leaves
+  these rows out), as a deployment would run it; and that step alone;
 * ``learned observer.step alone``: one step at batch 1 divided by 8 (the network's share);
 * ``vqf.VQF.update`` (9-D and 6-D), called per sample from Python, and ``vqf.VQF.updateBatch``
   over the whole stream divided by its length (the C++ loop without Python's per-call cost);
@@ -33,6 +37,7 @@ import platform
 import random
 import statistics
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -54,12 +59,41 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(t) / t * K + (1 - math.cos(t)) / t**2 * (K @ K)
 
 
-def learned_stream(run: str, x0=None):
+def compiled_step(observer, folder: Path):
+    """The observer's exported online step (``manifold_nets.export_observer``, batch 1) compiled
+    ahead of time by AOTInductor into ``folder``: ``(native, start)``, ``native(*state, y, u)``
+    the next state tensors (``x`` first, float64; ``y`` float64, ``u`` float32), ``start(x0)``
+    the state tensors of a start ``x0`` ``(1, 3, 3)`` (every estimate in it ``x0``, the cores'
+    initial hidden states). Seconds to build: printed."""
+    from torch._inductor import aoti_compile_and_package, aoti_load_package
+
+    from manifold_nets import export_observer
+
+    t0 = time.perf_counter()
+    program = export_observer(observer, folder / "step.pt2", batch=1)
+    native = aoti_load_package(aoti_compile_and_package(program, package_path=str(
+        folder / "step_aoti.pt2")))
+    print(f"exported and compiled (AOTInductor) in {time.perf_counter() - t0:.1f} s")
+    module = observer.online_step_module()
+    names = ["x", *module.state_names()]
+
+    def start(x0):
+        state = list(module.initial_state(1))
+        for i, name in enumerate(names):
+            if name == "x" or name.endswith("_x"):  # the estimate, each member's
+                state[i] = x0.reshape(1, -1).to(state[i].dtype)
+        return tuple(state)
+
+    return native, start
+
+
+def learned_stream(run: str, x0=None, compiled: Path | None = None):
     """``feed(gyr, acc, mag) -> (3, 3)`` estimate per sample (see the module docstring); it
     starts from TRIAD of the first sample, or from ``x0`` ``(1, 3, 3)`` (``broad.evaluate``
     starts from TRIAD of the first observer step's readings, sample 8: :func:`check`).
     The run's system says how it reads (``broad.evaluate.input_settings``: the pre-filters,
-    per sample by ``OnlinePrefilter``; a 6-D observer's magnetometer zeroed)."""
+    per sample by ``OnlinePrefilter``; a 6-D observer's magnetometer zeroed). ``compiled``: a
+    folder; the observer's step is then :func:`compiled_step`'s, built there."""
     from manifold_nets_examples.broad.prefilter import OnlinePrefilter
 
     from groups import SO3
@@ -77,33 +111,44 @@ def learned_stream(run: str, x0=None):
                           order=inputs["acc_lowpass_order"])
     six = not inputs.get("magnetometer", True)
     st = {"n": 0, "block": np.eye(3), "state": None, "R": None}
+    native, native_start = compiled_step(observer, compiled) if compiled else (None, None)
 
     @torch.inference_mode()
     def feed(gyr, acc, mag):
         gyr, acc = pre.update(gyr, acc)
-        inc = _rodrigues(gyr * dt)
-        y = torch.tensor(np.concatenate((acc / G0, 0 * mag if six else mag / M0)),
-                         dtype=torch.float32)[None]
+
+        def reading():  # the observer's measurement, made only where a step reads it
+            return torch.tensor(np.concatenate((acc / G0, 0 * mag if six else mag / M0)),
+                                dtype=torch.float32)[None]
+
         if st["state"] is None:  # TRIAD of the first sample (its gyro is not integrated)
-            start = system.state_from_measurement(y.double()) if x0 is None else x0
-            st["state"] = observer.init_state(1, estimate=start)
+            start = system.state_from_measurement(reading().double()) if x0 is None else x0
+            st["state"] = (observer.init_state(1, estimate=start) if native is None
+                           else native_start(start))
             st["R"] = start[0].numpy()
             return st["R"]
-        st["block"] = st["block"] @ inc
+        st["block"] = st["block"] @ _rodrigues(gyr * dt)
         st["n"] += 1
         if st["n"] % k:
             return st["R"] @ st["block"]
         rate = so3.log(torch.from_numpy(st["block"]))[None] / system.dt
-        st["state"] = observer.step(st["state"], y, rate.float())
-        st["R"], st["block"] = st["state"].estimate[0].numpy(), np.eye(3)
+        y = reading()
+        if native is None:
+            st["state"] = observer.step(st["state"], y, rate.float())
+            st["R"] = st["state"].estimate[0].numpy()
+        else:
+            st["state"] = native(*st["state"], y.double(), rate.float())
+            st["R"] = st["state"][0].reshape(3, 3).numpy()
+        st["block"] = np.eye(3)
         return st["R"]
 
     return feed, observer
 
 
-def check(run: str, trial, n: int) -> float:
-    """The largest angle (deg) between the online loop's estimates and ``broad.evaluate``'s
-    (``observer_quaternions``) over the first ``n`` samples of ``trial``, from one start."""
+def check(run: str, trial, n: int, compiled: Path | None = None) -> float:
+    """The largest angle (deg) between the online loop's estimates (its step compiled in
+    ``compiled`` when given) and ``broad.evaluate``'s (``observer_quaternions``) over the first
+    ``n`` samples of ``trial``, from one start."""
     import dataclasses
 
     from manifold_nets import load_observer
@@ -123,7 +168,7 @@ def check(run: str, trial, n: int) -> float:
     y8 = torch.tensor(np.concatenate((pre.acc[8] / G0, part.mag[8] / M0)))[None]
     x0 = system.state_from_measurement(y8) if inputs.get("magnetometer", True) else tilt(
         y8[:, :3])
-    feed = learned_stream(run, x0)[0]
+    feed = learned_stream(run, x0, compiled)[0]
     R = np.array([feed(part.gyr[i], part.acc[i], part.mag[i]) for i in range(n)])
     return float(np.degrees(errors(matrix_to_quat(R), batch)["total"]).max())
 
@@ -136,6 +181,20 @@ def step_alone(observer):
     def feed(*_):
         nonlocal state
         state = observer.step(state, y, u)
+
+    return feed
+
+
+def compiled_alone(observer, folder: Path):
+    """:func:`compiled_step`'s step alone, batch 1, from the identity."""
+    native, start = compiled_step(observer, folder)
+    state = start(torch.eye(3, dtype=torch.float64)[None])
+    y, u = torch.randn(1, 6, dtype=torch.float64), torch.randn(1, 3) * 0.1
+
+    @torch.inference_mode()
+    def feed(*_):
+        nonlocal state
+        state = native(*state, y, u)
 
     return feed
 
@@ -161,6 +220,11 @@ def rows(args, trial):
         out[f"learned `{args.prefiltered_run}`, full online loop"] = (
             learned_stream(args.prefiltered_run)[0], 1)
     out["learned observer.step alone (per sample: / 8)"] = (step_alone(observer), 8)
+    if args.compiled:  # the same observer, its exported step compiled ahead of time
+        out[f"learned `{args.run}`, full online loop, step compiled (AOTInductor)"] = (
+            learned_stream(args.run, compiled=args.compiled / "loop")[0], 1)
+        out["learned step compiled (AOTInductor) alone (per sample: / 8)"] = (
+            compiled_alone(observer, args.compiled / "alone"), 8)
     members = getattr(observer, "members", None)
     if members is not None:  # an ensemble: where its step's time goes
         out["one member's step alone (per sample: / 8)"] = (step_alone(members[0]), 8)
@@ -220,7 +284,8 @@ def markdown(times, n, rate, args) -> str:
         "# BROAD: per-sample cost of the online filters, one CPU thread",
         "",
         f"`python benchmarks/bench_broad_step.py --samples {args.samples} --rounds {args.rounds}"
-        + (f" --prefiltered-run {args.prefiltered_run}" if args.prefiltered_run else "") + " --write`; "
+        + (f" --prefiltered-run {args.prefiltered_run}" if args.prefiltered_run else "")
+        + (" --no-aoti" if args.compiled is None else "") + " --write`; "
         f"trial {TRIAL[:2]}, its first {n} samples ({rate:.1f} Hz: a real-time budget of "
         f"{1e6 / rate:.0f} us per sample); median over {args.rounds} rounds (one warm-up not "
         "counted), rows interleaved in a shuffled order each round; torch "
@@ -247,12 +312,24 @@ def main(argv=None) -> None:
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--data-dir", default=None)
     p.add_argument("--write", action="store_true", help="write results/broad_step.md")
+    p.add_argument("--no-aoti", action="store_true",
+                   help="leave out the rows of the step compiled by AOTInductor (needs a C++ "
+                        "compiler)")
     args = p.parse_args(argv)
     sys.path.insert(0, str(ROOT))
-    times, n, rate, trial = time_rows(args)
-    text = markdown(times, n, rate, args)
-    agree = {r: check(r, trial, min(n, 4001)) for r in (args.run, args.prefiltered_run) if r}
-    text += "".join(f"\nThe online loop of `{r}` agrees with `broad.evaluate`'s estimates "
+    with tempfile.TemporaryDirectory() as tmp:
+        args.compiled = None if args.no_aoti else Path(tmp)
+        if args.compiled:
+            for sub in ("loop", "alone", "check"):
+                (args.compiled / sub).mkdir()
+        times, n, rate, trial = time_rows(args)
+        text = markdown(times, n, rate, args)
+        agree = {f"`{r}`": check(r, trial, min(n, 4001))
+                 for r in (args.run, args.prefiltered_run) if r}
+        if args.compiled:
+            agree[f"`{args.run}` with its step compiled"] = check(
+                args.run, trial, min(n, 4001), args.compiled / "check")
+    text += "".join(f"\nThe online loop of {r} agrees with `broad.evaluate`'s estimates "
                     f"to {d:.1e} deg (largest difference over the first 4001 samples, one start)."
                     "\n" for r, d in agree.items())
     print(text)
