@@ -232,3 +232,32 @@ def test_onnx_export_of_an_ensemble_names_the_way_that_works():
     with pytest.raises(TypeError, match="export_onnx exports one ResidualObserver's step, got "
                        "EnsembleObserver; export an ensemble .* with export_observer"):
         export_onnx(EnsembleObserver(_members(SO3(), 9, 2)), "unused.onnx")
+
+
+@pytest.mark.skipif(not any(map(__import__("shutil").which, ("c++", "g++", "clang++"))),
+                    reason="AOTInductor compiles C++: no compiler on this machine")
+def test_an_ensembles_exported_step_compiled_ahead_of_time_steps_as_exported(tmp_path):
+    """docs/deployment.md's fast path: the exported program compiled by AOTInductor runs the
+    same steps as the exported program (a float32 core's roundings apart), barycentre first."""
+    from torch._inductor import aoti_compile_and_package, aoti_load_package
+
+    from manifold_nets import export_observer
+    from manifold_nets.deploy import load_exported_step
+
+    ens = EnsembleObserver(_members(SO3(), 9, 2))
+    program = export_observer(ens, tmp_path / "ens.pt2", batch=1)
+    exported = load_exported_step(tmp_path / "ens.pt2")
+    native = aoti_load_package(aoti_compile_and_package(
+        program, package_path=str(tmp_path / "ens_aoti.pt2")))
+    ys = so3_walk(1, 10, seed=2).measurements.to(torch.float64)
+    a = b = exported.initial_state()
+    moved = 0.0
+    with torch.inference_mode():
+        for t in range(ys.shape[1]):
+            a, b = exported(*a, ys[:, t]), native(*b, ys[:, t])
+            for p, q in zip(a, b):
+                torch.testing.assert_close(q, p, rtol=1e-5, atol=1e-6)
+            moved = max(moved, float((a[0] - exported.initial_state()[0]).abs().max()))
+    assert moved > 1e-2  # the estimate moved: equal steps are not two stuck states
+    x = a[0].reshape(3, 3)
+    torch.testing.assert_close(x.T @ x, torch.eye(3, dtype=x.dtype), rtol=0, atol=1e-12)
