@@ -35,6 +35,7 @@ import math
 import os
 import platform
 import random
+import shutil
 import statistics
 import sys
 import tempfile
@@ -316,6 +317,9 @@ def main(argv=None) -> None:
                    help="leave out the rows of the step compiled by AOTInductor (needs a C++ "
                         "compiler)")
     args = p.parse_args(argv)
+    if not args.no_aoti and not any(shutil.which(c) for c in ("c++", "g++", "clang++")):
+        raise SystemExit("error: no C++ compiler found (c++, g++ or clang++), which AOTInductor "
+                         "needs for the compiled rows; install one, or pass --no-aoti.")
     sys.path.insert(0, str(ROOT))
     with tempfile.TemporaryDirectory() as tmp:
         args.compiled = None if args.no_aoti else Path(tmp)
