@@ -34,6 +34,13 @@ takes the raw ``y`` and ``u`` (both in the filter's dtype, float64 by default), 
 state tensors after the observer's (named ``filter_*`` in the description, which also holds the
 filter's signature under ``readings_filter`` and every state tensor's dtype under
 ``state_dtypes``), and returns them updated after the observer's.
+
+An :class:`~manifold_nets.observer.EnsembleObserver` exports every member's state after the
+barycentre ``x``; a :class:`~manifold_nets.observer.CalibratedObserver` exports its observer's
+step with the readout's ``memory`` (and ``clock_steps``) after the observer's state, a
+``context`` input last for a readout that reads some, and the covariance ``P`` as the last
+output (the description names the inputs and holds the readout's signature under
+``covariance_readout``).
 """
 
 from __future__ import annotations
@@ -122,7 +129,7 @@ class OnlineStep(nn.Module):
 
 def _meta(step: nn.Module, batch: int | None) -> dict[str, Any]:
     obs = step.observer
-    prefilter = getattr(step, "prefilter", None)
+    prefilter, readout = getattr(step, "prefilter", None), getattr(step, "readout", None)
     initial = step.initial_state(1)
     return {
         "format": "manifold_nets.online_step/1",
@@ -134,10 +141,11 @@ def _meta(step: nn.Module, batch: int | None) -> dict[str, Any]:
         "input_dim": obs.input_dim,
         "batch": batch,
         "inputs": ["x", *step.state_names(), "y"]
-        + (["u"] if obs.input_dim else []),
+        + (["u"] if obs.input_dim else []) + list(getattr(step, "extra_inputs", list)()),
         "initial_state": [t[0].tolist() for t in initial],
         "state_dtypes": [str(t.dtype).removeprefix("torch.") for t in initial],
         "readings_filter": None if prefilter is None else prefilter.signature(),
+        "covariance_readout": None if readout is None else readout.signature(),
     }
 
 
@@ -149,8 +157,8 @@ def _online_step(observer) -> nn.Module:
     step = make() if callable(make) else None
     if not all(hasattr(step, name) for name in ("example_inputs", "state_names", "observer")):
         raise TypeError(
-            f"export a ResidualObserver or a FilteredObserver (an observer behind its readings "
-            f"filter), got {type(observer).__name__}."
+            f"export a ResidualObserver, an EnsembleObserver, a FilteredObserver (an observer "
+            f"behind its readings filter) or a CalibratedObserver, got {type(observer).__name__}."
         )
     return step.eval()
 
@@ -165,7 +173,9 @@ def export_observer(
 
     ``observer`` may be a :class:`~manifold_nets.observer.FilteredObserver`: the exported step
     then takes the raw readings, with the filter's state tensors after the observer's
-    (:class:`~manifold_nets.observer.filtered.FilteredStep`).
+    (:class:`~manifold_nets.observer.filtered.FilteredStep`); an ensemble, or a
+    :class:`~manifold_nets.observer.CalibratedObserver` whose step also returns ``P`` (module
+    docstring).
 
     ``batch``: ``None`` (default) exports for any batch size (a dynamic first dimension, traced
     at 2), an integer for that batch size only.

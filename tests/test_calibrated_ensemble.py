@@ -160,3 +160,42 @@ def test_a_filtered_observer_with_a_context_readout_rolls_out_steps_and_exports_
             assert_covariances_close(P, cov[:, k + 1])
             assert_covariances_close(P_exp, cov[:, k + 1])
             torch.testing.assert_close(flat[0], est[:, k + 1].reshape(2, -1), rtol=0, atol=1e-10)
+
+
+@pytest.mark.parametrize("batch", [None, 1])
+def test_export_observer_writes_a_calibrated_ensemble_s_step_with_its_covariance(tmp_path, batch):
+    """export_observer takes a CalibratedObserver: the saved program, loaded back, steps as the
+    eager step (estimate, every state tensor, P), from the description's initial state; the
+    description names the readout's memory, clock and context inputs and holds its signature."""
+    from manifold_nets import export_observer
+    from manifold_nets.deploy import load_exported_step
+
+    ens = _ensemble(2)
+    r = CovarianceReadout(GROUP, 12, "factor", memory=4, source="readings", clock=(3.0,),
+                          context=2)
+    with torch.no_grad():
+        for p in r.parameters():
+            p.normal_(0, 0.3)
+    cal = CalibratedObserver(ens, r).eval()
+    export_observer(cal, tmp_path / "cal.pt2", batch=batch)
+    loaded = load_exported_step(tmp_path / "cal.pt2")
+    meta = loaded.meta
+    assert meta["inputs"][-4:] == ["memory", "clock_steps", "y", "context"]
+    assert meta["inputs"][0] == "x" and meta["covariance_readout"] == r.signature()
+    step = cal.online_step_module()
+    n = 1 if batch == 1 else 3
+    flat, got = step.initial_state(n), loaded.initial_state(n)
+    for a, b in zip(flat, got):
+        torch.testing.assert_close(b, a, rtol=0, atol=0)
+    _, y = _walk(n, 6, seed=3)
+    c = torch.randn(n, 6, 2, generator=torch.Generator().manual_seed(4))
+    with torch.no_grad():
+        est, cov = cal(y, context=c)
+        for k in range(6):
+            *flat, P = step(*flat, y[:, k], c[:, k])
+            *got, P_exp = loaded(*got, y[:, k], c[:, k])
+            assert_covariances_close(P_exp, P)
+            assert_covariances_close(P_exp, cov[:, k + 1])
+            for a, b in zip(flat, got):
+                torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+            torch.testing.assert_close(got[0], est[:, k + 1].reshape(n, -1), rtol=0, atol=1e-6)

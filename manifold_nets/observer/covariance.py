@@ -171,7 +171,8 @@ class CovarianceReadout(nn.Module):
         self.clock, self.context = check_clock(clock), context
         self.group, self.structure, self.memory, self.source = group, structure, memory, source
         self.width, self.n = width, group.tangent_dim
-        rows, cols = torch.nonzero(_mask(group, structure), as_tuple=True)
+        # each its own tensor: as views of one, torch.export's archive warns on saving them
+        rows, cols = (t.clone() for t in torch.nonzero(_mask(group, structure), as_tuple=True))
         self.register_buffer("rows", rows, persistent=False)
         self.register_buffer("cols", cols, persistent=False)
         self.register_buffer("on_diagonal", rows == cols, persistent=False)
@@ -432,6 +433,31 @@ class CalibratedStep(nn.Module):
         self.layers = len(obs.core.initial_hidden(1)) if isinstance(obs, ResidualObserver) else 0
         self.clocked = bool(getattr(self.step, "clock", False))  # the observer counts its steps
         self.own_count = bool(self.readout.clock) and not self.clocked
+
+    @property
+    def observer(self):
+        """The observer whose step this extends (what ``export_observer`` describes)."""
+        return self.step.observer
+
+    @property
+    def prefilter(self):
+        """The observer's readings filter, when its step runs one (else ``None``)."""
+        return getattr(self.step, "prefilter", None)
+
+    def state_names(self) -> list[str]:
+        """The observer's state names after ``x``, then ``memory`` (and ``clock_steps``)."""
+        return [*self.step.state_names(), "memory", *(["clock_steps"] if self.own_count else [])]
+
+    def extra_inputs(self) -> list[str]:
+        """The inputs after ``y`` and ``u``: ``context`` for a readout that reads some."""
+        return ["context"] if self.readout.context else []
+
+    def example_inputs(self, batch: int = 1) -> tuple[torch.Tensor, ...]:
+        """The initial state, zero readings (and zero context) of the right shapes and dtypes."""
+        readings = self.step.example_inputs(batch)[1 + self.step.num_hidden:]
+        context = next(self.readout.parameters()).new_zeros(batch, self.readout.context)
+        return (*self.initial_state(batch), *readings,
+                *((context,) if self.readout.context else ()))
 
     def initial_state(self, batch: int = 1):
         steps = (torch.zeros(batch, dtype=torch.float64),) if self.own_count else ()
