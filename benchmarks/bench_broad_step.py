@@ -22,6 +22,9 @@ the rows interleaved within each round so that other processes' load hits them a
   (``torch._inductor.aoti_compile_and_package``; needs a C++ compiler, ``--no-aoti`` leaves
   these rows out), as a deployment would run it; and that step alone;
 * ``learned observer.step alone``: one step at batch 1 divided by 8 (the network's share);
+* ``learned step with its covariance``: where the run's folder holds a ``covariance.pt`` (the
+  zoo entry's), the step of the observer with its readout (``CalibratedObserver.step``, random
+  context), eager and compiled as above;
 * ``vqf.VQF.update`` (9-D and 6-D), called per sample from Python, and ``vqf.VQF.updateBatch``
   over the whole stream divided by its length (the C++ loop without Python's per-call cost);
 * ``riann predict_step`` (the ``riann`` package's ONNX network, one onnxruntime thread), where
@@ -200,6 +203,42 @@ def compiled_alone(observer, folder: Path):
     return feed
 
 
+def calibrated_alone(run: str, folder: Path | None = None):
+    """The observer's step with its covariance readout (``covariance.pt`` in the run's folder),
+    batch 1, from the identity: eager (``CalibratedObserver.step``), or, with ``folder``, its
+    exported step (``export_observer``) compiled there by AOTInductor."""
+    from torch._inductor import aoti_compile_and_package, aoti_load_package
+
+    from manifold_nets import export_observer, load_observer
+    from manifold_nets.covariance_training import load_readout
+    from manifold_nets.plugins import locate
+
+    cal = load_readout(locate(run) / "covariance.pt", load_observer(run)[0]).eval()
+    c = torch.randn(1, cal.readout.context)
+    if folder is None:
+        state, y, u = cal.init_state(1), torch.randn(1, 6), torch.randn(1, 3) * 0.1
+
+        @torch.inference_mode()
+        def feed(*_):
+            nonlocal state
+            state, _ = cal.step(state, y, u, context=c if cal.readout.context else None)
+
+        return feed
+    native = aoti_load_package(aoti_compile_and_package(
+        export_observer(cal, folder / "cal.pt2", batch=1), package_path=str(folder / "cal_aoti.pt2")))
+    step = cal.online_step_module()
+    *state, y, u = step.example_inputs(1)[: len(step.initial_state(1)) + 2]
+    y, u = torch.randn_like(y), torch.randn_like(u) * 0.1
+    extra = (c,) if cal.readout.context else ()
+
+    @torch.inference_mode()
+    def feed(*_):
+        nonlocal state
+        state = native(*state, y, u, *extra)[:-1]
+
+    return feed
+
+
 def barycentre_alone(ensemble):
     """The ensemble's barycentre of its members' estimates, batch 1 (as its online step takes it)."""
     x = ensemble.group.random((len(ensemble.members), 1), dtype=ensemble.state_dtype)
@@ -226,6 +265,14 @@ def rows(args, trial):
             learned_stream(args.run, compiled=args.compiled / "loop")[0], 1)
         out["learned step compiled (AOTInductor) alone (per sample: / 8)"] = (
             compiled_alone(observer, args.compiled / "alone"), 8)
+    from manifold_nets.plugins import locate
+
+    if (locate(args.run) / "covariance.pt").is_file():  # its covariance readout beside it
+        out["learned step with its covariance alone (per sample: / 8)"] = (
+            calibrated_alone(args.run), 8)
+        if args.compiled:
+            out["learned step with its covariance, compiled (AOTInductor) alone (per sample: / 8)"] = (
+                calibrated_alone(args.run, args.compiled / "alone"), 8)
     members = getattr(observer, "members", None)
     if members is not None:  # an ensemble: where its step's time goes
         out["one member's step alone (per sample: / 8)"] = (step_alone(members[0]), 8)
