@@ -176,6 +176,8 @@ class CovarianceReadout(nn.Module):
         self.register_buffer("rows", rows, persistent=False)
         self.register_buffer("cols", cols, persistent=False)
         self.register_buffer("on_diagonal", rows == cols, persistent=False)
+        # the diagonal's positions as integers: a boolean mask's count is data to torch.export
+        self.register_buffer("diagonal", torch.nonzero(rows == cols).squeeze(-1), persistent=False)
         self.register_buffer("shift", torch.zeros(width + context))
         self.register_buffer("scale", torch.ones(width + context))
         reads = width + context + len(self.clock)
@@ -268,7 +270,7 @@ class CovarianceReadout(nn.Module):
         unit = torch.where(self.on_diagonal, 1.0, raw)
         C = raw.new_zeros(*raw.shape[:-1], self.n, self.n)
         C[..., self.rows, self.cols] = unit  # unit lower triangular
-        return C * raw[..., self.on_diagonal].exp().unsqueeze(-2)  # C diag(exp(d))
+        return C * raw[..., self.diagonal].exp().unsqueeze(-2)  # C diag(exp(d))
 
     def cholesky(self, inputs: torch.Tensor, memory: torch.Tensor, start=0) -> tuple[torch.Tensor, torch.Tensor]:
         """``L`` ``(B, T, n, n)`` (float64) of ``inputs`` ``(B, T, width)`` from ``memory`` after
@@ -285,7 +287,7 @@ class CovarianceReadout(nn.Module):
         observer's start): ``(L, log diag L)``."""
         raw, _ = self.raw(inputs, self.initial_memory(inputs.shape[0], inputs.device), start)
         raw = raw.double()
-        return self._factor(raw), raw[..., self.on_diagonal]
+        return self._factor(raw), raw[..., self.diagonal]
 
     @staticmethod
     def covariance(chol: torch.Tensor) -> torch.Tensor:
