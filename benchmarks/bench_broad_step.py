@@ -63,21 +63,29 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(t) / t * K + (1 - math.cos(t)) / t**2 * (K @ K)
 
 
-def compiled_step(observer, folder: Path):
-    """The observer's exported online step (``manifold_nets.export_observer``, batch 1) compiled
-    ahead of time by AOTInductor into ``folder``: ``(native, start)``, ``native(*state, y, u)``
-    the next state tensors (``x`` first, float64; ``y`` float64, ``u`` float32), ``start(x0)``
-    the state tensors of a start ``x0`` ``(1, 3, 3)`` (every estimate in it ``x0``, the cores'
-    initial hidden states). Seconds to build: printed."""
+def compiled(observer, folder: Path, name: str):
+    """``observer``'s exported online step (``manifold_nets.export_observer``, batch 1) compiled
+    ahead of time by AOTInductor to ``folder/<name>_aoti.pt2`` (built once per folder and name,
+    then loaded), loaded: call it as the exported step. Seconds to build: printed."""
     from torch._inductor import aoti_compile_and_package, aoti_load_package
 
     from manifold_nets import export_observer
 
-    t0 = time.perf_counter()
-    program = export_observer(observer, folder / "step.pt2", batch=1)
-    native = aoti_load_package(aoti_compile_and_package(program, package_path=str(
-        folder / "step_aoti.pt2")))
-    print(f"exported and compiled (AOTInductor) in {time.perf_counter() - t0:.1f} s")
+    package = folder / f"{name}_aoti.pt2"
+    if not package.is_file():
+        t0 = time.perf_counter()
+        program = export_observer(observer, folder / f"{name}.pt2", batch=1)
+        aoti_compile_and_package(program, package_path=str(package))
+        print(f"{name}: exported and compiled (AOTInductor) in {time.perf_counter() - t0:.1f} s")
+    return aoti_load_package(str(package))
+
+
+def compiled_step(observer, folder: Path):
+    """:func:`compiled` of the observer's step: ``(native, start)``, ``native(*state, y, u)``
+    the next state tensors (``x`` first, float64; ``y`` float64, ``u`` float32), ``start(x0)``
+    the state tensors of a start ``x0`` ``(1, 3, 3)`` (every estimate in it ``x0``, the cores'
+    initial hidden states)."""
+    native = compiled(observer, folder, "step")
     module = observer.online_step_module()
     names = ["x", *module.state_names()]
 
@@ -207,9 +215,7 @@ def calibrated_alone(run: str, folder: Path | None = None):
     """The observer's step with its covariance readout (``covariance.pt`` in the run's folder),
     batch 1, from the identity: eager (``CalibratedObserver.step``), or, with ``folder``, its
     exported step (``export_observer``) compiled there by AOTInductor."""
-    from torch._inductor import aoti_compile_and_package, aoti_load_package
-
-    from manifold_nets import export_observer, load_observer
+    from manifold_nets import load_observer
     from manifold_nets.covariance_training import load_readout
     from manifold_nets.plugins import locate
 
@@ -224,8 +230,7 @@ def calibrated_alone(run: str, folder: Path | None = None):
             state, _ = cal.step(state, y, u, context=c if cal.readout.context else None)
 
         return feed
-    native = aoti_load_package(aoti_compile_and_package(
-        export_observer(cal, folder / "cal.pt2", batch=1), package_path=str(folder / "cal_aoti.pt2")))
+    native = compiled(cal, folder, "calibrated")
     step = cal.online_step_module()
     *state, y, u = step.example_inputs(1)[: len(step.initial_state(1)) + 2]
     y, u = torch.randn_like(y), torch.randn_like(u) * 0.1
@@ -371,7 +376,7 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         args.compiled = None if args.no_aoti else Path(tmp)
         if args.compiled:
-            for sub in ("loop", "alone", "check"):
+            for sub in ("loop", "alone"):
                 (args.compiled / sub).mkdir()
         times, n, rate, trial = time_rows(args)
         text = markdown(times, n, rate, args)
@@ -379,7 +384,7 @@ def main(argv=None) -> None:
                  for r in (args.run, args.prefiltered_run) if r}
         if args.compiled:
             agree[f"`{args.run}` with its step compiled"] = check(
-                args.run, trial, min(n, 4001), args.compiled / "check")
+                args.run, trial, min(n, 4001), args.compiled / "loop")  # the loop's build
     text += "".join(f"\nThe online loop of {r} agrees with `broad.evaluate`'s estimates "
                     f"to {d:.1e} deg (largest difference over the first 4001 samples, one start)."
                     "\n" for r, d in agree.items())

@@ -42,6 +42,7 @@ import numpy as np  # noqa: E402
 from scipy import stats  # noqa: E402
 
 from manifold_nets.atomic import write_text_atomic  # noqa: E402
+from manifold_nets.loading import ensemble_members  # noqa: E402
 from manifold_nets_examples.broad.compare import ATTRIBUTION, METRICS  # noqa: E402
 from manifold_nets_examples.broad.crossval import fold_trials  # noqa: E402
 from manifold_nets_examples.broad.data import read_trials, split_trials  # noqa: E402
@@ -87,26 +88,22 @@ def _scored(quats, trials) -> dict:
     return {t.name: rmse(q, t.quat, t.movement) for q, t in zip(quats, trials)}
 
 
-def _members(folder: Path) -> list[Path]:
-    return sorted(p for p in (folder / "members").iterdir() if p.is_dir())
-
-
 def nine_d(cv_runs: list[Path], data_dir: str | None) -> dict:
     """``{set: {"learned": {trial: metrics}, "vqf": {...}}}`` for ``cv`` and ``test``."""
     default_dir, split = split_trials(None)
     folds_dir, held = fold_trials(FOLDS)
-    sets = {"cv": {}, "test": {}}
+    learned, cv_trials = {}, []
     for folder, names in zip(cv_runs, held):
         trials = read_trials(data_dir or folds_dir, names)
-        quats = [run_estimates(m, "val", trials) for m in _members(folder)]
-        sets["cv"].update(_scored([ensemble(list(q)) for q in zip(*quats)], trials))
+        quats = [run_estimates(m, "val", trials) for m in ensemble_members(folder)]
+        learned.update(_scored([ensemble(list(q)) for q in zip(*quats)], trials))
+        cv_trials += trials
         print(f"{folder}: {len(trials)} held-out trials", flush=True)
     test = read_trials(data_dir or default_dir, split["test"])
-    quats = [run_estimates(m, "test", test) for m in _members(cv_runs[0])]
-    sets["test"] = _scored([ensemble(list(q)) for q in zip(*quats)], test)
-    cv_trials = read_trials(data_dir or folds_dir, [n for names in held for n in names])
-    return {"cv": {"learned": sets["cv"], "vqf": _scored(vqf_9d(cv_trials), cv_trials)},
-            "test": {"learned": sets["test"], "vqf": _scored(vqf_9d(test), test)}}
+    quats = [run_estimates(m, "test", test) for m in ensemble_members(cv_runs[0])]
+    return {"cv": {"learned": learned, "vqf": _scored(vqf_9d(cv_trials), cv_trials)},
+            "test": {"learned": _scored([ensemble(list(q)) for q in zip(*quats)], test),
+                     "vqf": _scored(vqf_9d(test), test)}}
 
 
 def six_d(root: Path) -> dict:

@@ -325,9 +325,10 @@ def main(argv=None) -> None:
         before = result
         if cv is not None:
             q, result["cross_fitted_nll"], per_trial = _cross_conformal(parts, observer, args)
-        scales = scale_to_share(readout, q if cv is not None else held[source])
-        if cv is not None:
+            scales = scale_to_share(readout, q)
             result["cross_fitted_trials"] = _held_out_shares(per_trial, scales)
+        else:
+            scales = scale_to_share(readout, held[source])
         result = {**result, "scales": scales, "unscaled": {"trials": before["trials"],
                   "mean": before["mean"]}, **_scored(observer, readout, test, test_trials, start, context)}
     save_readout(out / "covariance.pt", readout, args.observer)

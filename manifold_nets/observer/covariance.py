@@ -405,8 +405,10 @@ class CalibratedObserver(nn.Module):
              context: torch.Tensor | None = None):
         """One online step: ``(new state, P (B, n, n))``; ``context`` ``(B, context)``."""
         obs = self.observer.step(state.observer, y, u)
-        z = self.inputs(obs.estimate.flatten(1), y, u, obs.hidden, context) \
-            if isinstance(self.observer, ResidualObserver) else self.inputs(None, y, u, None, context)  # fmt: skip
+        if isinstance(self.observer, ResidualObserver):
+            z = self.inputs(obs.estimate.flatten(1), y, u, obs.hidden, context)
+        else:  # any other observer, read by its readings alone
+            z = self.inputs(None, y, u, None, context)
         chol, memory = self.readout.cholesky(z.unsqueeze(1), state.memory, steps_taken(state.observer))
         return CalibratedState(obs, memory), CovarianceReadout.covariance(chol[:, 0])
 
