@@ -19,7 +19,9 @@ the fixed split's training trials, which are folds 2 and 3's held-out trials, so
 cross-validation rows are optimistic for the learned filter. The validation trials were not
 trained on, but they chose among configurations and among the three ensembles of the
 configuration (seeds 3-5, the lowest validation total), so only the test rows are free of
-selection. 6-D: TIL6's per-trial inclination
+selection. ``--scratch-runs`` (the same, each fold's ensemble trained from scratch, every stage
+on its fold's training trials alone; fold 1's is the zoo entry again) adds the 15
+cross-validation trials and all 23 with every trial unseen by the observer that scores it. 6-D: TIL6's per-trial inclination
 (mean over its three seeds) and VQF 6-D's from ``docs/real_data/loss6_{val,test}/metrics.json``
 (TIL6's stages trained on the 11 training trials only).
 
@@ -88,9 +90,9 @@ def _scored(quats, trials) -> dict:
     return {t.name: rmse(q, t.quat, t.movement) for q, t in zip(quats, trials)}
 
 
-def nine_d(cv_runs: list[Path], data_dir: str | None) -> dict:
-    """``{set: {"learned": {trial: metrics}, "vqf": {...}}}`` for ``cv`` and ``test``."""
-    default_dir, split = split_trials(None)
+def cross_validated(cv_runs: list[Path], data_dir: str | None) -> tuple[dict, list]:
+    """Each cross-validation trial's metrics by its fold's ensemble (``{trial: metrics}``), and
+    the trials."""
     folds_dir, held = fold_trials(FOLDS)
     learned, cv_trials = {}, []
     for folder, names in zip(cv_runs, held):
@@ -99,11 +101,23 @@ def nine_d(cv_runs: list[Path], data_dir: str | None) -> dict:
         learned.update(_scored([ensemble(list(q)) for q in zip(*quats)], trials))
         cv_trials += trials
         print(f"{folder}: {len(trials)} held-out trials", flush=True)
+    return learned, cv_trials
+
+
+def nine_d(cv_runs: list[Path], data_dir: str | None, scratch: list[Path] | None = None) -> dict:
+    """``{set: {"learned": {trial: metrics}, "vqf": {...}}}`` for ``cv``, ``test`` and, with
+    ``scratch`` (fold ensembles trained from scratch on their folds), ``scratch``."""
+    default_dir, split = split_trials(None)
+    learned, cv_trials = cross_validated(cv_runs, data_dir)
+    vqf = _scored(vqf_9d(cv_trials), cv_trials)
     test = read_trials(data_dir or default_dir, split["test"])
     quats = [run_estimates(m, "test", test) for m in ensemble_members(cv_runs[0])]
-    return {"cv": {"learned": learned, "vqf": _scored(vqf_9d(cv_trials), cv_trials)},
-            "test": {"learned": _scored([ensemble(list(q)) for q in zip(*quats)], test),
-                     "vqf": _scored(vqf_9d(test), test)}}
+    out = {"cv": {"learned": learned, "vqf": vqf},
+           "test": {"learned": _scored([ensemble(list(q)) for q in zip(*quats)], test),
+                    "vqf": _scored(vqf_9d(test), test)}}
+    if scratch:
+        out["scratch"] = {"learned": cross_validated(scratch, data_dir)[0], "vqf": vqf}
+    return out
 
 
 def six_d(root: Path) -> dict:
@@ -122,19 +136,30 @@ def _row(label: str, metric: str, r: dict) -> str:
             f"{r['lower']} of {r['trials']} | {r['p_sign_flip']:.3f} |")
 
 
+def _folders(flag: str, value: str | None) -> list[Path] | None:
+    if value is None:
+        return None
+    runs = [Path(r) for r in value.split(",") if r]
+    if len(runs) != len(FOLDS):
+        raise SystemExit(f"error: {flag}: one ensemble folder per fold ({len(FOLDS)}), got "
+                         f"{len(runs)}.")
+    return runs
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--cv-runs", required=True,
                    help="one ensemble folder per fold of configs/broad/cv/, comma-separated")
+    p.add_argument("--scratch-runs", default=None,
+                   help="as --cv-runs, each fold's ensemble trained from scratch on its fold's "
+                        "training trials (every stage): its 15 trials are unseen")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--docs", default="docs/real_data", help="where the 6-D tables are")
     p.add_argument("--write", default=None, help="a .md path; the .json beside it")
     args = p.parse_args(argv)
-    runs = [Path(r) for r in args.cv_runs.split(",") if r]
-    if len(runs) != len(FOLDS):
-        raise SystemExit(f"error: --cv-runs: one ensemble folder per fold ({len(FOLDS)}), got "
-                         f"{len(runs)}.")
-    nine = nine_d(runs, args.data_dir)
+    runs, scratch = (_folders(flag, value) for flag, value in (
+        ("--cv-runs", args.cv_runs), ("--scratch-runs", args.scratch_runs)))
+    nine = nine_d(runs, args.data_dir, scratch)
     six = six_d(Path(args.docs))
     val = set(fold_trials(FOLDS[:1])[1][0])
     sets = {  # (label, learned, vqf), per metric
@@ -148,6 +173,10 @@ def main(argv=None) -> None:
         "9-D, all 23 (11 seen by the start)": {
             m: {**nine["cv"][m], **nine["test"][m]} for m in ("learned", "vqf")},
     }
+    if scratch:
+        sets["9-D, 15 cross-validation trials, folds from scratch, unseen"] = nine["scratch"]
+        sets["9-D, all 23 unseen (folds from scratch, and test)"] = {
+            m: {**nine["scratch"][m], **nine["test"][m]} for m in ("learned", "vqf")}
     result = {label: {m: paired({k: v[m] for k, v in d["learned"].items()},
                                 {k: v[m] for k, v in d["vqf"].items()}) for m in METRICS}
               for label, d in sets.items()}
