@@ -80,8 +80,10 @@ def _sums(d: np.ndarray) -> np.ndarray:
 def sign_flip_p(d: np.ndarray) -> float:
     """The share of the ``2^n`` sign patterns whose signed sum is at least ``|sum d|`` in size
     (meet in the middle: the two halves' sums, one sorted, counted by bisection)."""
-    a, b = _sums(d[: len(d) // 2]), np.sort(_sums(d[len(d) // 2:]))
     t = abs(d.sum()) - 1e-12 * np.abs(d).sum()
+    if t <= 0:  # a zero sum: every pattern is as extreme (and the two tails below would overlap)
+        return 1.0
+    a, b = _sums(d[: len(d) // 2]), np.sort(_sums(d[len(d) // 2:]))
     count = (len(b) - np.searchsorted(b, t - a, "left")) + np.searchsorted(b, -t - a, "right")
     return float(count.sum() / (len(a) * len(b)))
 
