@@ -63,7 +63,7 @@ def _rodrigues(w: np.ndarray) -> np.ndarray:
     return np.eye(3) + math.sin(t) / t * K + (1 - math.cos(t)) / t**2 * (K @ K)
 
 
-def compiled(observer, folder: Path, name: str):
+def aoti_package(observer, folder: Path, name: str):
     """``observer``'s exported online step (``manifold_nets.export_observer``, batch 1) compiled
     ahead of time by AOTInductor to ``folder/<name>_aoti.pt2`` (built once per folder and name,
     then loaded), loaded: call it as the exported step. Seconds to build: printed."""
@@ -81,11 +81,11 @@ def compiled(observer, folder: Path, name: str):
 
 
 def compiled_step(observer, folder: Path):
-    """:func:`compiled` of the observer's step: ``(native, start)``, ``native(*state, y, u)``
+    """:func:`aoti_package` of the observer's step: ``(native, start)``, ``native(*state, y, u)``
     the next state tensors (``x`` first, float64; ``y`` float64, ``u`` float32), ``start(x0)``
     the state tensors of a start ``x0`` ``(1, 3, 3)`` (every estimate in it ``x0``, the cores'
     initial hidden states)."""
-    native = compiled(observer, folder, "step")
+    native = aoti_package(observer, folder, "step")
     module = observer.online_step_module()
     names = ["x", *module.state_names()]
 
@@ -99,12 +99,12 @@ def compiled_step(observer, folder: Path):
     return native, start
 
 
-def learned_stream(run: str, x0=None, compiled: Path | None = None):
+def learned_stream(run: str, x0=None, aoti_dir: Path | None = None):
     """``feed(gyr, acc, mag) -> (3, 3)`` estimate per sample (see the module docstring); it
     starts from TRIAD of the first sample, or from ``x0`` ``(1, 3, 3)`` (``broad.evaluate``
     starts from TRIAD of the first observer step's readings, sample 8: :func:`check`).
     The run's system says how it reads (``broad.evaluate.input_settings``: the pre-filters,
-    per sample by ``OnlinePrefilter``; a 6-D observer's magnetometer zeroed). ``compiled``: a
+    per sample by ``OnlinePrefilter``; a 6-D observer's magnetometer zeroed). ``aoti_dir``: a
     folder; the observer's step is then :func:`compiled_step`'s, built there."""
     from manifold_nets_examples.broad.prefilter import OnlinePrefilter
 
@@ -123,7 +123,7 @@ def learned_stream(run: str, x0=None, compiled: Path | None = None):
                           order=inputs["acc_lowpass_order"])
     six = not inputs.get("magnetometer", True)
     st = {"n": 0, "block": np.eye(3), "state": None, "R": None}
-    native, native_start = compiled_step(observer, compiled) if compiled else (None, None)
+    native, native_start = compiled_step(observer, aoti_dir) if aoti_dir else (None, None)
 
     @torch.inference_mode()
     def feed(gyr, acc, mag):
@@ -157,9 +157,9 @@ def learned_stream(run: str, x0=None, compiled: Path | None = None):
     return feed, observer
 
 
-def check(run: str, trial, n: int, compiled: Path | None = None) -> float:
+def check(run: str, trial, n: int, aoti_dir: Path | None = None) -> float:
     """The largest angle (deg) between the online loop's estimates (its step compiled in
-    ``compiled`` when given) and ``broad.evaluate``'s (``observer_quaternions``) over the first
+    ``aoti_dir`` when given) and ``broad.evaluate``'s (``observer_quaternions``) over the first
     ``n`` samples of ``trial``, from one start."""
     import dataclasses
 
@@ -180,7 +180,7 @@ def check(run: str, trial, n: int, compiled: Path | None = None) -> float:
     y8 = torch.tensor(np.concatenate((pre.acc[8] / G0, part.mag[8] / M0)))[None]
     x0 = system.state_from_measurement(y8) if inputs.get("magnetometer", True) else tilt(
         y8[:, :3])
-    feed = learned_stream(run, x0, compiled)[0]
+    feed = learned_stream(run, x0, aoti_dir)[0]
     R = np.array([feed(part.gyr[i], part.acc[i], part.mag[i]) for i in range(n)])
     return float(np.degrees(errors(matrix_to_quat(R), batch)["total"]).max())
 
@@ -230,7 +230,7 @@ def calibrated_alone(run: str, folder: Path | None = None):
             state, _ = cal.step(state, y, u, context=c if cal.readout.context else None)
 
         return feed
-    native = compiled(cal, folder, "calibrated")
+    native = aoti_package(cal, folder, "calibrated")
     step = cal.online_step_module()
     *state, y, u = step.example_inputs(1)[: len(step.initial_state(1)) + 2]
     y, u = torch.randn_like(y), torch.randn_like(u) * 0.1
@@ -267,7 +267,7 @@ def rows(args, trial):
     out["learned observer.step alone (per sample: / 8)"] = (step_alone(observer), 8)
     if args.compiled:  # the same observer, its exported step compiled ahead of time
         out[f"learned `{args.run}`, full online loop, step compiled (AOTInductor)"] = (
-            learned_stream(args.run, compiled=args.compiled / "loop")[0], 1)
+            learned_stream(args.run, aoti_dir=args.compiled / "loop")[0], 1)
         out["learned step compiled (AOTInductor) alone (per sample: / 8)"] = (
             compiled_alone(observer, args.compiled / "alone"), 8)
     from manifold_nets.plugins import locate

@@ -42,8 +42,8 @@ from .prefilter import prefiltered
 from .rate import decimate, upsample
 
 __all__ = [
-    "pad_trials", "readings_batch", "quaternions_from", "observer_quaternions", "check_scored", "chosen_splits", "evaluate_run",
-    "input_settings",
+    "pad_trials", "readings_batch", "quaternions_from", "observer_quaternions", "check_scored",
+    "chosen_splits", "evaluate_run", "input_settings",
 ]
 
 log = logging.getLogger("broad.evaluate")
