@@ -21,13 +21,13 @@ import torch
 
 from .calibration import tangent_errors
 from .data import TrajectoryDataset
-from .observer import CovarianceReadout, ResidualObserver
+from .observer import CovarianceReadout, LevelScale, ResidualObserver
 from .observer.covariance import gaussian_nll, readout_inputs
 from .progress import progress
 
 __all__ = [
     "Sequences", "readout_sequences", "fit_covariance", "mean_nll", "factor_nees", "scale_to_heldout",
-    "step_nees", "scale_to_share",
+    "step_nees", "scale_to_share", "fit_level_scale",
 ]
 
 
@@ -250,19 +250,101 @@ def scale_to_share(readout: CovarianceReadout, heldout, sigma: float = 3.0) -> d
     return scales
 
 
+@torch.no_grad()
+def fit_level_scale(
+    readout: CovarianceReadout, heldout: Sequences, knots: int = 8, tau: float = 100.0,
+    clock: tuple[float, ...] = (10.0, 50.0, 250.0, 1000.0), thin: int = 1, ridge: float = 1e-4,
+    batch_size: int = 200,
+) -> LevelScale:
+    """A :class:`~manifold_nets.observer.LevelScale` of ``readout`` fitted to ``heldout``
+    (sequences neither fitted nor used to pick the epoch or the scale; whole sequences, each
+    averaged level starting at the start's): per factor, ``knots`` points at the 0.1 ... 99.9 %
+    quantiles of the held-out averaged levels (so every hat has steps under it, and a level
+    between two clusters of them is interpolated between fitted knots), and the weights that
+    minimise the mean
+    Gaussian negative log-likelihood of the scaled covariance over the known steps (every
+    ``thin``-th), ``mean(u + q exp(-u)) + ridge |w|^2 / 2`` with ``q = NEES / d``: convex in
+    ``w``, solved by damped Newton steps. At the minimum the scaled ``NEES / d`` averages 1 on
+    every basis function, so on the held-out steps the level is right at every averaged level
+    and along the clock (from the first known step on; earlier steps take its scale)."""
+    from .calibration import nees
+
+    if isinstance(knots, bool) or not isinstance(knots, int) or knots < 2:
+        raise ValueError(f"fit_level_scale: knots must be an integer >= 2, got {knots!r}.")
+    if isinstance(thin, bool) or not isinstance(thin, int) or thin < 1:
+        raise ValueError(f"fit_level_scale: thin must be a positive integer, got {thin!r}.")
+    group, names = readout.group, readout.group.factor_names
+    zeros = torch.zeros(len(names), knots, 1 + len(clock), dtype=torch.float64)
+    probe = LevelScale(group, torch.arange(float(knots)).repeat(len(names), 1), zeros, clock, tau)
+    qs, lbars, ks = [], [], []
+    for s in range(0, len(heldout), batch_size):
+        part = heldout.select(torch.arange(s, min(len(heldout), s + batch_size)))
+        chol = readout.log_scale(part.features, part.starts)[0]
+        cov = CovarianceReadout.covariance(chol)
+        lbar = probe.averaged(probe.level(chol), probe.initial(readout.initial_cholesky((len(part),))))
+        q = torch.stack([nees(part.errors[..., sl], cov[..., sl, sl]) / (sl.stop - sl.start)
+                         for sl in map(group.tangent_slice, names)], -1)
+        k = part.starts.double().unsqueeze(1) + torch.arange(1, chol.shape[1] + 1, dtype=torch.float64)
+        qs.append(q[part.known]), lbars.append(lbar[part.known]), ks.append(k[part.known])
+    q, lbar, k = (torch.cat(t)[::thin] for t in (qs, lbars, ks))
+    if len(q) < 10 * knots * (1 + len(clock)):
+        raise ValueError(f"fit_level_scale: {len(q)} known steps are too few for {knots} knots "
+                         f"and a clock of {len(clock)}; give more held-out sequences.")
+    every = lbar[:: max(1, len(lbar) // 200_000)]  # torch.quantile's input has a size limit
+    grid = torch.linspace(0.001, 0.999, knots, dtype=torch.float64)
+    at = torch.quantile(every, grid, dim=0).T.contiguous()  # (F, knots)
+    if not bool((at.diff(dim=1) > 0).all()):
+        raise ValueError("fit_level_scale: the readout's level hardly varies over the held-out "
+                         "steps (its quantiles coincide); use fewer knots, or a constant scale "
+                         "(scale_to_heldout).")
+    first = int(k.min())
+    scale = LevelScale(group, at, zeros, clock, tau, first)
+    phi = scale.basis(lbar, k)
+    weights = torch.stack([_newton_log_scale(q[:, f], phi[:, f].flatten(1), ridge)
+                           for f in range(len(names))]).reshape(zeros.shape)
+    return LevelScale(group, scale.knots, weights, clock, tau, first)
+
+
+def _newton_log_scale(q: torch.Tensor, phi: torch.Tensor, ridge: float) -> torch.Tensor:
+    """``w`` minimising ``mean(phi w + q exp(-phi w)) + ridge |w|^2 / 2`` (damped Newton)."""
+    def loss(w):
+        u = phi @ w
+        return float((u + q * torch.exp(-u)).mean() + 0.5 * ridge * w @ w)
+
+    w = torch.zeros(phi.shape[1], dtype=torch.float64)
+    eye = torch.eye(len(w), dtype=torch.float64)
+    for _ in range(100):
+        r = q * torch.exp(-phi @ w)
+        grad = phi.T @ (1 - r) / len(q) + ridge * w
+        if float(grad.abs().max()) < 1e-9:
+            return w
+        step = torch.linalg.solve((phi * r[:, None]).T @ phi / len(q) + ridge * eye, grad)
+        t, now = 1.0, loss(w)
+        while loss(w - t * step) > now - 0.25 * t * float(grad @ step) and t > 1e-6:
+            t /= 2
+        w = w - t * step
+    raise RuntimeError("fit_level_scale: the Newton iteration did not converge in 100 steps.")
+
+
 #: The format of a readout file (:func:`save_readout`).
 READOUT_FORMAT = "manifold_nets.covariance/1"
 
 
-def save_readout(path, readout: CovarianceReadout, observer: str = "") -> None:
+def save_readout(path, readout: CovarianceReadout, observer: str = "",
+                 level_scale: LevelScale | None = None) -> None:
     """Writes ``readout`` (its signature and weights; ``observer`` a note of which observer it
-    belongs to) to ``path``, atomically."""
+    belongs to; ``level_scale``, when given, its signature, knots and weights) to ``path``,
+    atomically."""
     from .atomic import atomic_open
 
     payload = {
         "format": READOUT_FORMAT, "signature": readout.signature(), "observer": str(observer),
         "model": {k: v.detach().cpu() for k, v in readout.state_dict().items()},
     }
+    if level_scale is not None:
+        payload["level_scale"] = {"signature": level_scale.signature(),
+                                  "knots": level_scale.knots.detach().cpu(),
+                                  "weights": level_scale.weights.detach().cpu()}
     with atomic_open(path, "wb") as f:
         torch.save(payload, f)
 
@@ -320,4 +402,24 @@ def load_readout(path, observer: ResidualObserver):
     readout = CovarianceReadout(observer.group, want["width"], structure, memory, source, clock,
                                 context)
     load_state(readout, {"model": state}, path)
-    return CalibratedObserver(observer, readout)
+    return CalibratedObserver(observer, readout, _load_level_scale(ckpt, readout.group, path))
+
+
+def _load_level_scale(ckpt: dict, group, path) -> LevelScale | None:
+    """The file's level scale (``None`` where it has none), checked before it is built."""
+    from .checkpoint import CheckpointError
+
+    if "level_scale" not in ckpt:
+        return None
+    entry = ckpt["level_scale"]
+    sig = entry.get("signature") if isinstance(entry, dict) else None
+    knots, weights = (entry.get(k) if isinstance(entry, dict) else None for k in ("knots", "weights"))
+    if not (isinstance(sig, dict) and set(sig) == {"knots", "clock", "tau", "first"}
+            and isinstance(knots, torch.Tensor) and isinstance(weights, torch.Tensor)
+            and knots.dim() == 2 and knots.shape[1] == sig["knots"]):
+        raise CheckpointError(f"{path}: the level scale is malformed (it needs a signature of "
+                              "knots, clock, tau and first, and its knots and weights as tensors).")
+    try:
+        return LevelScale(group, knots, weights, tuple(sig["clock"]), sig["tau"], sig["first"])
+    except (TypeError, ValueError) as err:
+        raise CheckpointError(f"{path}: the level scale does not fit the readout ({err})") from None

@@ -37,10 +37,10 @@ filter's signature under ``readings_filter`` and every state tensor's dtype unde
 
 An :class:`~manifold_nets.observer.EnsembleObserver` exports every member's state after the
 barycentre ``x``; a :class:`~manifold_nets.observer.CalibratedObserver` exports its observer's
-step with the readout's ``memory`` (and ``clock_steps``) after the observer's state, a
-``context`` input last for a readout that reads some, and the covariance ``P`` as the last
-output (the description names the inputs and holds the readout's signature under
-``covariance_readout``).
+step with the readout's ``memory`` (then a level scale's averaged ``level``, and ``clock_steps``)
+after the observer's state, a ``context`` input last for a readout that reads some, and the
+covariance ``P`` as the last output (the description names the inputs and holds the readout's
+signature under ``covariance_readout``, a level scale's under ``level_scale``).
 """
 
 from __future__ import annotations
@@ -146,6 +146,8 @@ def _meta(step: nn.Module, batch: int | None) -> dict[str, Any]:
         "state_dtypes": [str(t.dtype).removeprefix("torch.") for t in initial],
         "readings_filter": None if prefilter is None else prefilter.signature(),
         "covariance_readout": None if readout is None else readout.signature(),
+        **({"level_scale": step.level_scale.signature()}
+           if getattr(step, "level_scale", None) is not None else {}),
     }
 
 

@@ -138,6 +138,15 @@ def assert_covariances_close(got: torch.Tensor, want: torch.Tensor, tol: float =
     torch.testing.assert_close(got / scale, want / scale, rtol=0, atol=tol)
 
 
+def assert_step_covariances_follow(step, flat, measurements: torch.Tensor, cov: torch.Tensor) -> None:
+    """Runs an exported-style ``step`` from the state tensors ``flat`` over ``measurements``
+    ``(B, T, l)``: its ``P`` after step ``k`` is ``cov[:, k + 1]`` (a rollout's)."""
+    with torch.no_grad():
+        for k in range(measurements.shape[1]):
+            *flat, P = step(*flat, measurements[:, k])
+            assert_covariances_close(P, cov[:, k + 1])
+
+
 def noisy_walk(group, n: int, t: int, step: float, noise, seed: int = 0):
     """States ``(n, t+1, *element_shape)`` of a random walk on ``group`` (``step`` rad per axis
     and step) and measurements ``(n, t, embedding_dim)``: each state's embedding after a tangent

@@ -20,7 +20,7 @@ from manifold_nets.observer import (
     ResidualObserver,
 )
 from manifold_nets.observer.covariance import gaussian_nll, input_width
-from observer_checks import assert_covariances_close
+from observer_checks import assert_covariances_close, assert_step_covariances_follow
 
 GROUP = Product(SO3(), Euclidean(3), names=("R", "p"))
 
@@ -346,7 +346,4 @@ def test_a_clock_reads_the_observer_s_own_step_count_in_the_exported_step():
     y = _measurements(2, 6)
     with torch.no_grad():
         _, cov = cal(y)
-        flat = step.initial_state(2)
-        for k in range(6):
-            *flat, P = step(*flat, y[:, k])
-            assert_covariances_close(P, cov[:, k + 1])
+    assert_step_covariances_follow(step, step.initial_state(2), y, cov)

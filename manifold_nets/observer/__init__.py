@@ -10,7 +10,8 @@ features                :class:`Embedding`, :class:`Readings`, :class:`Innovatio
                         :class:`Rotated`, :class:`FramedInnovation`
 heads                   :class:`PlainHead`, :class:`GainHead`, :class:`CentredHead`
 step scales             :class:`OutputScale`, :class:`StepDecay`, :class:`Projection`
-a covariance            :class:`CovarianceReadout`, :class:`CalibratedObserver`
+a covariance            :class:`CovarianceReadout`, :class:`CalibratedObserver`,
+                        :class:`LevelScale`
 a readings pre-filter   :class:`ReadingsFilter`, :class:`FilteredObserver`,
                         :func:`with_readings_filter`
 an ensemble of seeds    :class:`EnsembleObserver` (the members' barycentre on the group)
@@ -19,11 +20,13 @@ your own piece          subclass :class:`Prior`, :class:`Feature`, :class:`Head`
 ======================  ====================================================================
 """
 
-from .covariance import CalibratedObserver, CovarianceReadout
+from .calibrated import CalibratedObserver, CalibratedState, CalibratedStep
+from .covariance import CovarianceReadout
 from .ensemble import EnsembleObserver, EnsembleState, EnsembleStep
 from .features import Embedding, Feature, FramedInnovation, Innovation, Readings, Rotated
 from .filtered import FilteredObserver, FilteredState, with_readings_filter
 from .heads import CentredHead, GainHead, Head, PlainHead
+from .level_scale import LevelScale
 from .measurement import Measurement, RobustMeasurement, StepView
 from .observer import ObserverState, ResidualObserver, Rollout
 from .piece import PIECES, Piece
@@ -48,7 +51,7 @@ __all__ = [
     "Feature", "Embedding", "Readings", "Innovation", "Rotated", "FramedInnovation",
     "Head", "PlainHead", "GainHead", "CentredHead",
     "StepScale", "OutputScale", "StepDecay", "Projection", "RobustWeights",
-    "CovarianceReadout", "CalibratedObserver",
+    "CovarianceReadout", "CalibratedObserver", "CalibratedState", "CalibratedStep", "LevelScale",
     "ReadingsFilter", "FilteredObserver", "FilteredState", "with_readings_filter",
     "EnsembleObserver", "EnsembleState", "EnsembleStep",
 ]

@@ -30,7 +30,8 @@ diagonal are the readout (so ``log det P = 2 sum d`` exactly, and the correlatio
 the errors' scale). Step 0 (the start, before any measurement) has its own learned factor.
 
 A ``"readings"`` readout reads nothing of the observer, so it serves any observer: a
-:class:`CalibratedObserver` may wrap an :class:`~manifold_nets.observer.EnsembleObserver` (whose
+:class:`~manifold_nets.observer.CalibratedObserver` may wrap an
+:class:`~manifold_nets.observer.EnsembleObserver` (whose
 members have no one core to read) or a :class:`~manifold_nets.observer.FilteredObserver` with
 one, its covariance fitted to that observer's own errors.
 
@@ -41,19 +42,15 @@ run at every ``k``-th sample sees one sample of each block; how far the block's 
 spread (a vibration that a low-pass and the step's average hide) is such context
 (``examples/broad/calibration.py``).
 
-:class:`CalibratedObserver` puts an observer and a readout together: its rollout returns the
-estimates and the covariances ``(N, T+1, n, n)``, its online step the new state and ``P``, and
-its exported step (:meth:`CalibratedObserver.online_step_module`) one more state tensor (the
-readout's memory) and one more output, ``P``. The readout does not change the estimate: fitted
-on a frozen observer (:func:`manifold_nets.covariance_training.fit_covariance`), the point
-estimates are the observer's to the last bit.
+:class:`~manifold_nets.observer.CalibratedObserver` (:mod:`manifold_nets.observer.calibrated`)
+puts an observer and a readout together. The readout does not change the estimate: fitted on a
+frozen observer (:func:`manifold_nets.covariance_training.fit_covariance`), the point estimates
+are the observer's to the last bit.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
-
 import torch
 from torch import nn
 
@@ -63,8 +60,8 @@ from ..cores import Hidden
 from .observer import ObserverState, ResidualObserver
 
 __all__ = [
-    "STRUCTURES", "SOURCES", "CovarianceReadout", "CalibratedObserver", "CalibratedState",
-    "hidden_features", "readout_inputs", "with_context", "gaussian_nll",
+    "STRUCTURES", "SOURCES", "CovarianceReadout", "hidden_features", "readout_inputs",
+    "with_context", "gaussian_nll",
 ]
 
 STRUCTURES = ("diagonal", "factor", "joint")
@@ -325,159 +322,3 @@ def with_context(readout: CovarianceReadout, z: torch.Tensor, context: torch.Ten
         raise ValueError(f"this readout reads {want} numbers of context per step: give context "
                          f"of shape {(*z.shape[:-1], want)}, got {got}.")
     return torch.cat([z, context.to(z)], dim=-1)
-
-
-class CalibratedState(NamedTuple):
-    """The online state of a :class:`CalibratedObserver`: the observer's and the readout's
-    memory ``(B, memory)``."""
-
-    observer: ObserverState
-    memory: torch.Tensor
-
-
-class CalibratedObserver(nn.Module):
-    """An observer and its covariance readout; see the module docstring."""
-
-    def __init__(self, observer: ResidualObserver, readout: CovarianceReadout):
-        super().__init__()
-        if not isinstance(observer, ResidualObserver) and not (
-                readout.source == "readings" and isinstance(observer, nn.Module)
-                and hasattr(observer, "online_step_module")):
-            raise TypeError(
-                f"a {readout.source} readout reads one ResidualObserver's "
-                f"{'core' if readout.source == 'hidden' else 'measured factors'}; got a "
-                f"{type(observer).__name__}. A readout of source 'readings' serves any observer "
-                "(an EnsembleObserver, a FilteredObserver)."
-            )
-        if readout.source == "residual" and not observer.measurement.factors:
-            raise ValueError(
-                "a residual readout reads the measured factors' residuals, but the observer's "
-                "measurement names no measured factor; use source='hidden'."
-            )
-        width = input_width(observer, readout.source)
-        if readout.width != width or readout.n != observer.group.tangent_dim:
-            raise ValueError(
-                f"the readout reads {readout.width} numbers ({readout.source}) into a "
-                f"{readout.n}-dimensional covariance; this observer gives {width} and its tangent "
-                f"space has {observer.group.tangent_dim} dimensions."
-            )
-        self.observer, self.readout = observer, readout
-
-    @property
-    def group(self) -> LieGroup:
-        return self.observer.group
-
-    def inputs(self, x, y, u, hidden, context: torch.Tensor | None = None) -> torch.Tensor:
-        """:func:`readout_inputs` of this observer and readout, and the step's ``context``
-        (:func:`with_context`)."""
-        z = readout_inputs(self.observer, self.readout.source, x, y, u, hidden)
-        return with_context(self.readout, z, context)
-
-    def forward(self, measurements, inputs=None, state: ObserverState | None = None,
-                context: torch.Tensor | None = None):
-        """``(estimates (N, T+1, *element_shape), covariances (N, T+1, n, n))`` from the
-        observer's start (or ``state``: an observer state, the readout's memory starting fresh);
-        the first covariance is the start's. ``context`` ``(N, T, context)``: the side
-        information of each step, for a readout that reads some."""
-        if isinstance(self.observer, ResidualObserver):
-            run = self.observer.rollout(measurements, inputs, state=state, keep_hidden=True)
-            estimates = run.estimates
-            z = self.inputs(
-                estimates[:, 1:].flatten(2), measurements, inputs,
-                tuple(h[:, 1:] for h in run.hidden), context,
-            )
-        else:  # any other observer, read by its readings alone
-            estimates = self.observer(measurements, inputs, state=state)
-            z = self.inputs(None, measurements, inputs, None, context)
-        n = estimates.shape[0]
-        start = 0 if state is None else steps_taken(state)
-        chol, _ = self.readout.cholesky(z, self.readout.initial_memory(n, z.device), start)
-        chol = torch.cat([self.readout.initial_cholesky((n, 1)), chol], dim=1)
-        return estimates, CovarianceReadout.covariance(chol)
-
-    def init_state(self, batch: int, device=None, estimate: torch.Tensor | None = None
-                   ) -> CalibratedState:
-        """The observer's start (``estimate``: a measured one) and the readout's fresh memory."""
-        return CalibratedState(self.observer.init_state(batch, device, estimate),
-                               self.readout.initial_memory(batch, device))
-
-    def step(self, state: CalibratedState, y: torch.Tensor, u: torch.Tensor | None = None,
-             context: torch.Tensor | None = None):
-        """One online step: ``(new state, P (B, n, n))``; ``context`` ``(B, context)``."""
-        obs = self.observer.step(state.observer, y, u)
-        if isinstance(self.observer, ResidualObserver):
-            z = self.inputs(obs.estimate.flatten(1), y, u, obs.hidden, context)
-        else:  # any other observer, read by its readings alone
-            z = self.inputs(None, y, u, None, context)
-        chol, memory = self.readout.cholesky(z.unsqueeze(1), state.memory, steps_taken(state.observer))
-        return CalibratedState(obs, memory), CovarianceReadout.covariance(chol[:, 0])
-
-    def online_step_module(self) -> nn.Module:
-        """The exported step with the readout's memory as one more state tensor and ``P`` as the
-        last output (:class:`CalibratedStep`)."""
-        return CalibratedStep(self)
-
-
-class CalibratedStep(nn.Module):
-    """:class:`manifold_nets.deploy.OnlineStep` of the observer, then ``P``:
-    ``(x, *state, memory[, clock_steps], y[, u][, context]) -> (x_next, *state_next,
-    memory_next[, clock_steps_next], P)`` (``P`` ``(B, n, n)``, float64; ``context`` for a
-    readout that reads some). A readout with a clock reads the
-    steps taken from the observer's own ``steps`` state tensor where it has one (a centred head,
-    a step decay), else from ``clock_steps`` ``(B,)`` (float64), one more state tensor. Each
-    module sits at one place in it (``step.observer``, ``readout``): ``torch.export``'s
-    non-strict tracer patches a module class reached by two paths, and the patch outlived the
-    export."""
-
-    def __init__(self, calibrated: CalibratedObserver):
-        super().__init__()
-        self.step = calibrated.observer.online_step_module()
-        self.readout = calibrated.readout
-        obs = calibrated.observer
-        self.layers = len(obs.core.initial_hidden(1)) if isinstance(obs, ResidualObserver) else 0
-        self.clocked = bool(getattr(self.step, "clock", False))  # the observer counts its steps
-        self.own_count = bool(self.readout.clock) and not self.clocked
-
-    @property
-    def observer(self):
-        """The observer whose step this extends (what ``export_observer`` describes)."""
-        return self.step.observer
-
-    @property
-    def prefilter(self):
-        """The observer's readings filter, when its step runs one (else ``None``)."""
-        return getattr(self.step, "prefilter", None)
-
-    def state_names(self) -> list[str]:
-        """The observer's state names after ``x``, then ``memory`` (and ``clock_steps``)."""
-        return [*self.step.state_names(), "memory", *(["clock_steps"] if self.own_count else [])]
-
-    def extra_inputs(self) -> list[str]:
-        """The inputs after ``y`` and ``u``: ``context`` for a readout that reads some."""
-        return ["context"] if self.readout.context else []
-
-    def example_inputs(self, batch: int = 1) -> tuple[torch.Tensor, ...]:
-        """The initial state, zero readings (and zero context) of the right shapes and dtypes."""
-        readings = self.step.example_inputs(batch)[1 + self.step.num_hidden:]
-        context = next(self.readout.parameters()).new_zeros(batch, self.readout.context)
-        return (*self.initial_state(batch), *readings,
-                *((context,) if self.readout.context else ()))
-
-    def initial_state(self, batch: int = 1):
-        steps = (torch.zeros(batch, dtype=torch.float64),) if self.own_count else ()
-        return (*self.step.initial_state(batch), self.readout.initial_memory(batch), *steps)
-
-    def forward(self, x: torch.Tensor, *args: torch.Tensor):
-        k = self.step.num_hidden  # the observer's state tensors after x, then the memory
-        state, memory = args[:k], args[k]
-        steps, rest = (args[k + 1], args[k + 2 :]) if self.own_count else (None, args[k + 1 :])
-        context, rest = (rest[-1], rest[:-1]) if self.readout.context else (None, rest)
-        out = self.step(x, *state, *rest)
-        u = rest[1] if len(rest) > 1 else None
-        z = readout_inputs(self.step.observer, self.readout.source, out[0], rest[0], u,
-                           out[1 : 1 + self.layers])
-        z = with_context(self.readout, z, context)
-        start = steps if steps is not None else state[-1] if self.clocked else 0
-        chol, memory = self.readout.cholesky(z.unsqueeze(1), memory, start)
-        count = () if steps is None else (steps + 1,)
-        return (*out, memory, *count, CovarianceReadout.covariance(chol[:, 0]))

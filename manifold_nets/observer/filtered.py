@@ -2,7 +2,7 @@
 
 A :class:`FilteredObserver` puts a :class:`~manifold_nets.observer.readings_filter.ReadingsFilter`
 in front of a :class:`~manifold_nets.observer.observer.ResidualObserver` (as
-:class:`~manifold_nets.observer.covariance.CalibratedObserver` puts a readout behind one): its
+:class:`~manifold_nets.observer.CalibratedObserver` puts a readout behind one): its
 rollout filters the readings, then rolls the observer over them; its online step filters one
 sample, then steps; its exported step (:meth:`FilteredObserver.online_step_module`, what
 :func:`manifold_nets.export_observer` traces) carries the filter's state as more state tensors.
@@ -151,7 +151,7 @@ class FilteredStep(nn.Module):
     ``y`` and ``u`` are the raw readings in the filter's dtype (``(B, l)``, ``(B, m)``, any
     views); the observer's state tensors are :class:`~manifold_nets.deploy.OnlineStep`'s. Each
     module sits at one place in it (``step.observer``, ``prefilter``; see
-    :class:`~manifold_nets.observer.covariance.CalibratedStep`)."""
+    :class:`~manifold_nets.observer.calibrated.CalibratedStep`)."""
 
     def __init__(self, filtered: FilteredObserver):
         super().__init__()

@@ -1,0 +1,114 @@
+"""A level scale for each rigid-body zoo readout, fitted on held-out sequences of its own system.
+
+::
+
+    python -m manifold_nets_examples.rigid_body.level_scale --out outputs/level_scale
+    python benchmarks/calibration_paper_sets.py --covariance-dir outputs/level_scale --no-ekf \\
+        --out outputs/calibration_paper_sets_level_scale
+
+For each readout of :data:`manifold_nets_examples.rigid_body.calibration.CASES` (nominal,
+outliers, AR(1) noise, bias walk; the sensor errors use the nominal one) the zoo observer and its
+shipped ``covariance.pt`` are rolled out over ``--heldout`` fresh sequences of 1000 steps per
+noise level (seeds 6000 + i: neither the readout's training, validation and scale sequences,
+1000-3004, nor the paper's sets, seed 1), and a :class:`~manifold_nets.observer.LevelScale` is
+fitted to its errors there (:func:`manifold_nets.covariance_training.fit_level_scale`: ``--knots``
+points of the readout's level averaged over ``--tau`` steps, times the readout's clock; steps
+``k >= 10``). ``OUT/<case>_covariance.pt`` is the readout with its level scale
+(:func:`~manifold_nets.covariance_training.load_readout` reads it back), ``OUT/level_scale.json``
+the held-out ANEES of ``R`` and ``p`` before and after, per noise level.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+import torch
+
+from manifold_nets.atomic import write_text_atomic
+from manifold_nets.covariance_training import (
+    Sequences,
+    factor_nees,
+    fit_level_scale,
+    load_readout,
+    readout_sequences,
+    save_readout,
+)
+from manifold_nets.threads import use_threads
+
+from .calibration import CASES, SIGMAS, SKIP, _sim, _system
+
+__all__ = ["main", "zoo_readout"]
+
+
+def zoo_readout(case: str):
+    """The zoo observer of ``case`` with its shipped readout (a ``CalibratedObserver``), and the
+    system it is scored on."""
+    entry, overrides, readout_case = CASES[case]
+    observer, system = _system(entry, overrides)
+    folder = Path(__file__).parent / "zoo" / CASES[readout_case][0].split("/")[1]
+    return load_readout(folder / "covariance.pt", observer), system
+
+
+def _held_out(observer, system, n: int, sigmas) -> list[Sequences]:
+    return [readout_sequences(observer, _sim(system, n, 1000, s, 6000 + i), skip=SKIP)
+            for i, s in enumerate(sigmas)]
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--out", required=True, help="the folder <case>_covariance.pt goes to")
+    p.add_argument("--cases", nargs="+", default=["nominal", "outliers", "correlated", "bias_walk"],
+                   choices=[c for c in CASES if CASES[c][2] == c])
+    p.add_argument("--sigmas", nargs="+", type=float, default=list(SIGMAS))
+    p.add_argument("--heldout", type=int, default=400, help="sequences per noise level")
+    p.add_argument("--knots", type=int, default=8)
+    p.add_argument("--tau", type=float, default=100.0, help="steps the level is averaged over")
+    p.add_argument("--thin", type=int, default=3, help="fit on every THIN-th known step")
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args(argv)
+    use_threads(args.threads)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    report = {"command": "python -m manifold_nets_examples.rigid_body.level_scale "
+              + " ".join(argv if argv is not None else sys.argv[1:]), "cases": {}}
+    for case in args.cases:
+        cal, system = zoo_readout(case)
+        held = _held_out(cal.observer, system, args.heldout, args.sigmas)
+        scale = fit_level_scale(cal.readout, Sequences.cat(held), args.knots, args.tau,
+                                thin=args.thin)
+        save_readout(out / f"{case}_covariance.pt", cal.readout, f"zoo:{CASES[case][0]}", scale)
+        rows = {}
+        for sigma, seqs in zip(args.sigmas, held):
+            before = factor_nees(cal.readout, seqs)
+            after = _scaled_nees(cal.readout, scale, seqs)
+            rows[str(sigma)] = {f: {"before": round(before[f], 4), "after": round(after[f], 4)}
+                                for f in ("R", "p")}
+            print(case, sigma, json.dumps(rows[str(sigma)]), flush=True)
+        report["cases"][case] = rows
+        write_text_atomic(out / "level_scale.json", json.dumps(report, indent=1))
+    print(f"-> {out}")
+
+
+@torch.no_grad()
+def _scaled_nees(readout, scale, seqs: Sequences, batch: int = 100) -> dict[str, float]:
+    """Each factor's mean ``NEES / d`` over ``seqs``' known steps under the scaled covariance."""
+    from manifold_nets.calibration import nees
+
+    g, sums, count = readout.group, {"R": 0.0, "p": 0.0}, 0
+    for s in range(0, len(seqs), batch):
+        part = seqs.select(torch.arange(s, min(len(seqs), s + batch)))
+        chol = readout.log_scale(part.features, part.starts)[0]
+        chol, _ = scale(chol, scale.initial(readout.initial_cholesky((len(part),))), part.starts)
+        cov = chol @ chol.transpose(-1, -2)
+        for f in sums:
+            sl = g.tangent_slice(f)
+            sums[f] += float(nees(part.errors[..., sl], cov[..., sl, sl])[part.known].sum())
+        count += int(part.known.sum())
+    return {f: v / count / g.factor(f).tangent_dim for f, v in sums.items()}
+
+
+if __name__ == "__main__":
+    main()
