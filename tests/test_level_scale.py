@@ -225,6 +225,7 @@ def test_a_level_scale_saves_with_its_readout_and_a_bad_one_is_refused(tmp_path)
 
 @pytest.mark.parametrize("bad, match", [
     ({"knots": torch.tensor([[0.0, 1.0]])}, "one row per factor"),
+    ({"knots": torch.arange(600.0).repeat(2, 1)}, "K <= 256"),
     ({"knots": torch.tensor([[1.0, 0.0]] * 2)}, "increase strictly"),
     ({"weights": torch.zeros(2, 2, 3)}, "weights must be"),
     ({"weights": torch.full((2, 2, 2), float("inf"))}, "finite"),

@@ -31,7 +31,10 @@ from groups import LieGroup
 
 from .covariance import check_clock
 
-__all__ = ["LevelScale"]
+__all__ = ["LevelScale", "MAX_KNOTS"]
+
+#: The most knots a level scale may have (the fitted ones: 8); a file asking for more is refused.
+MAX_KNOTS = 256
 
 
 class LevelScale(nn.Module):
@@ -54,8 +57,8 @@ class LevelScale(nn.Module):
         f = len(group.factor_names)
         knots, weights = torch.as_tensor(knots, dtype=torch.float64), torch.as_tensor(
             weights, dtype=torch.float64)
-        if knots.dim() != 2 or knots.shape[0] != f or knots.shape[1] < 2:
-            raise ValueError(f"level scale: knots must be ({f}, K >= 2), one row per factor of "
+        if knots.dim() != 2 or knots.shape[0] != f or not 2 <= knots.shape[1] <= MAX_KNOTS:
+            raise ValueError(f"level scale: knots must be ({f}, K), 2 <= K <= {MAX_KNOTS}, one row per factor of "
                              f"{list(group.factor_names)}; got {tuple(knots.shape)}.")
         if weights.shape != (f, knots.shape[1], 1 + len(clock)):
             raise ValueError(f"level scale: weights must be {(f, knots.shape[1], 1 + len(clock))} "
