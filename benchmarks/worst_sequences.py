@@ -1,0 +1,57 @@
+"""The sequences of one rigid-body set where a zoo observer's readout is least calibrated: the
+largest mean ``NEES / d`` of a factor over steps ``k >= 10``, beside the sequence's mean and last
+error, against the set's median, and the set's ANEES with and without the worst::
+
+    python benchmarks/worst_sequences.py --case outliers --sigma 0.5 --seed 8004
+
+(``--seed`` as :mod:`benchmarks.calibration_in_band` draws them: 8000 + the sigma's index.)
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+import torch
+
+from manifold_nets.calibration import nees, tangent_errors
+from manifold_nets.threads import use_threads
+from manifold_nets_examples.rigid_body.calibration import CASES, SKIP, _sim
+from manifold_nets_examples.rigid_body.level_scale import zoo_readout
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--case", default="outliers", choices=list(CASES))
+    p.add_argument("--sigma", type=float, default=0.5)
+    p.add_argument("--seed", type=int, default=8004)
+    p.add_argument("--sequences", type=int, default=1000)
+    p.add_argument("--factor", default="p", choices=["R", "p"])
+    p.add_argument("--top", type=int, default=5)
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args(argv)
+    use_threads(args.threads)
+    cal, system = zoo_readout(args.case)
+    cal.eval()
+    data, g = _sim(system, args.sequences, 1000, args.sigma, args.seed), system.group
+    s = g.tangent_slice(args.factor)
+    errs, qs = [], []
+    with torch.no_grad():
+        for b in range(0, args.sequences, 100):
+            est, cov = cal(data.measurements[b:b + 100])
+            xi = tangent_errors(g, est, data.states[b:b + 100])[:, SKIP:, s]
+            errs.append(xi.norm(dim=-1))
+            qs.append(nees(xi, cov[:, SKIP:, s, s]) / (s.stop - s.start))
+    err, q = torch.cat(errs), torch.cat(qs)
+    per_seq = q.mean(1)
+    print(f"{args.case}, sigma {args.sigma}, seed {args.seed}, {args.sequences} sequences, "
+          f"factor {args.factor}: median sequence's mean error {float(err.mean(1).median()):.3f}; "
+          f"ANEES {float(q.mean()):.3f}")
+    for i in torch.argsort(per_seq, descending=True)[: args.top].tolist():
+        print(f"  sequence {i}: mean NEES/d {float(per_seq[i]):.1f}, mean error "
+              f"{float(err[i].mean()):.3f}, last {float(err[i, -1]):.3f}, ANEES without it "
+              f"{float(q[torch.arange(len(q)) != i].mean()):.3f}")
+
+
+if __name__ == "__main__":
+    sys.exit(main())
