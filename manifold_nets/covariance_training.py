@@ -261,9 +261,9 @@ def fit_level_scale(
     averaged level starting at the start's): per factor, ``knots`` points at the 0.1 ... 99.9 %
     quantiles of the held-out averaged levels (so every hat has steps under it, and a level
     between two clusters of them is interpolated between fitted knots), and the weights that
-    minimise the mean
-    Gaussian negative log-likelihood of the scaled covariance over the known steps (every
-    ``thin``-th), ``mean(u + q exp(-u)) + ridge |w|^2 / 2`` with ``q = NEES / d``: convex in
+    minimise the mean Gaussian negative log-likelihood of the scaled covariance over the known
+    steps (every ``thin``-th), ``mean(u + q exp(-u)) + ridge |w|^2 / 2`` with ``q = NEES / d``
+    (the basis ``(steps, F, knots, 1 + len(clock))`` is held in float64: thin long sets): convex in
     ``w``, solved by damped Newton steps. At the minimum the scaled ``NEES / d`` averages 1 on
     every basis function, so on the held-out steps the level is right at every averaged level
     and along the clock (from the first known step on; earlier steps take its scale)."""
@@ -285,7 +285,9 @@ def fit_level_scale(
         q = torch.stack([nees(part.errors[..., sl], cov[..., sl, sl]) / (sl.stop - sl.start)
                          for sl in map(group.tangent_slice, names)], -1)
         k = part.starts.double().unsqueeze(1) + torch.arange(1, chol.shape[1] + 1, dtype=torch.float64)
-        qs.append(q[part.known]), lbars.append(lbar[part.known]), ks.append(k[part.known])
+        qs.append(q[part.known])
+        lbars.append(lbar[part.known])
+        ks.append(k[part.known])
     q, lbar, k = (torch.cat(t)[::thin] for t in (qs, lbars, ks))
     if len(q) < 10 * knots * (1 + len(clock)):
         raise ValueError(f"fit_level_scale: {len(q)} known steps are too few for {knots} knots "
