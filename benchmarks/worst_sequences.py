@@ -1,6 +1,8 @@
 """The sequences of one rigid-body set where a zoo observer's readout is least calibrated: the
 largest mean ``NEES / d`` of a factor over steps ``k >= 10``, beside the sequence's mean and last
-error, against the set's median, and the set's ANEES with and without the worst::
+error, against the set's median, and the set's ANEES with and without the worst; for an observer
+with learned robust weights on its measurement, the worst sequence's innovation norms and the
+weights they get along the run::
 
     python benchmarks/worst_sequences.py --case outliers --sigma 0.5 --seed 8004
 
@@ -47,10 +49,30 @@ def main(argv=None) -> None:
     print(f"{args.case}, sigma {args.sigma}, seed {args.seed}, {args.sequences} sequences, "
           f"factor {args.factor}: median sequence's mean error {float(err.mean(1).median()):.3f}; "
           f"ANEES {float(q.mean()):.3f}")
-    for i in torch.argsort(per_seq, descending=True)[: args.top].tolist():
+    order = torch.argsort(per_seq, descending=True)
+    for i in order[: args.top].tolist():
         print(f"  sequence {i}: mean NEES/d {float(per_seq[i]):.1f}, mean error "
               f"{float(err[i].mean()):.3f}, last {float(err[i, -1]):.3f}, ANEES without it "
               f"{float(q[torch.arange(len(q)) != i].mean()):.3f}")
+
+    robust = getattr(cal.observer.measurement, "robust", None)
+    if robust is not None:
+        _weights(cal.observer, data.measurements[int(order[0])])
+
+
+@torch.no_grad()
+def _weights(obs, y: torch.Tensor) -> None:
+    """The innovation norm of each measured factor against the estimate after each step, and
+    the learned robust weight it gets, at a few steps of one sequence ``y`` ``(T, l)``."""
+    m = obs.measurement
+    x = obs(y[None])[0, 1:].flatten(1).to(obs.state_dtype)
+    norms = torch.stack([n.norm(dim=-1) for n in m.innovations(x, m.elements(y.to(obs.state_dtype)))], -1)
+    w = m.robust(norms.float())
+    names = list(m.factors)
+    print(f"  the worst sequence's innovation norms and robust weights ({', '.join(names)}):")
+    for k in (50, 100, 200, 300, 500, len(y) - 1):
+        print(f"    step {k + 1}: " + ", ".join(f"{n} |nu| {float(norms[k, j]):.2f} weight "
+                                               f"{float(w[k, j]):.3f}" for j, n in enumerate(names)))
 
 
 if __name__ == "__main__":
