@@ -105,7 +105,7 @@ def _case(case: str, args) -> dict:
                              "scale; write one with python -m manifold_nets_examples.rigid_body.level_scale.")
     rows = {}
     for i, sigma in enumerate(args.sigmas):
-        r = _read(cal, scale, system, args.test, sigma, 8000 + i)
+        r = _read(cal, scale, system, args.test, sigma, args.seed + i)
         for f in FACTORS:
             q = r[f][:, SKIP:]
             a = q.mean(0)
@@ -123,8 +123,8 @@ def _case(case: str, args) -> dict:
 def _markdown(results: dict, command: str) -> str:
     lines = ["# Where the readouts' steps leave the 95 % band, and what a level recalibration wins back",
              "", f"`{command}`", "",
-             "Share of steps whose ANEES is inside the band (fresh sequences, seeds 8000 + i; 1000 per "
-             "noise level: the band is 0.950-1.051). "
+             f"Share of steps whose ANEES is inside the band (fresh sequences, seeds {results['seed']} + i; "
+             f"{results['test']} per noise level). "
              "The oracles are fitted on the scored set itself: upper bounds, not estimators.", "",
              "| case | factor | sigma | ANEES | in band | ceiling | oracle level | oracle level x time "
              "| level scale: ANEES | in band |", "|" + " --- |" * 10]
@@ -145,6 +145,7 @@ def main(argv=None) -> None:
     p.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     p.add_argument("--sigmas", nargs="+", type=float, default=list(SIGMAS))
     p.add_argument("--test", type=int, default=1000, help="sequences per noise level scored")
+    p.add_argument("--seed", type=int, default=8000, help="the scored sets' seeds: SEED + i")
     p.add_argument("--level-scale", type=Path, default=None,
                    help="a folder of <case>_covariance.pt with level scales to score beside")
     p.add_argument("--threads", type=int, default=1)
@@ -153,7 +154,8 @@ def main(argv=None) -> None:
     use_threads(args.threads)
     command = "python benchmarks/calibration_in_band.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
-    results = {"command": command, "cases": {c: _case(c, args) for c in args.cases}}
+    results = {"command": command, "seed": args.seed, "test": args.test,
+               "cases": {c: _case(c, args) for c in args.cases}}
     text = _markdown(results, command)
     if args.write is not None:
         args.write.with_suffix(".json").write_text(json.dumps(results, indent=1))
