@@ -10,7 +10,9 @@ For each readout of :data:`manifold_nets_examples.rigid_body.calibration.CASES` 
 outliers, AR(1) noise, bias walk; the sensor errors use the nominal one) the zoo observer and its
 shipped ``covariance.pt`` are rolled out over ``--heldout`` fresh sequences of 1000 steps per
 noise level (seeds 6000 + i: neither the readout's training, validation and scale sequences,
-1000-3004, nor the paper's sets, seed 1), and a :class:`~manifold_nets.observer.LevelScale` is
+1000-3004, nor the paper's sets, seed 1; by default 100 at each of 21 levels 0.10, 0.12, ...,
+0.50: fitted on the paper's five levels alone it learns each level's correction and does harm
+between them, ``docs/calibration.md``), and a :class:`~manifold_nets.observer.LevelScale` is
 fitted to its errors there (:func:`manifold_nets.covariance_training.fit_level_scale`: ``--knots``
 points of the readout's level averaged over ``--tau`` steps, times the readout's clock; steps
 ``k >= 10``). ``OUT/<case>_covariance.pt`` is the readout with its level scale
@@ -38,9 +40,12 @@ from manifold_nets.covariance_training import (
 )
 from manifold_nets.threads import use_threads
 
-from .calibration import CASES, SIGMAS, SKIP, _sim, _system
+from .calibration import CASES, SKIP, _sim, _system
 
-__all__ = ["main", "zoo_readout"]
+__all__ = ["main", "zoo_readout", "CONTINUUM"]
+
+#: The noise levels the level scales are fitted on by default: a continuum over the paper's range.
+CONTINUUM = tuple(round(0.1 + 0.02 * i, 2) for i in range(21))
 
 
 def zoo_readout(case: str):
@@ -62,8 +67,8 @@ def main(argv=None) -> None:
     p.add_argument("--out", required=True, help="the folder <case>_covariance.pt goes to")
     p.add_argument("--cases", nargs="+", default=["nominal", "outliers", "correlated", "bias_walk"],
                    choices=[c for c in CASES if CASES[c][2] == c])
-    p.add_argument("--sigmas", nargs="+", type=float, default=list(SIGMAS))
-    p.add_argument("--heldout", type=int, default=400, help="sequences per noise level")
+    p.add_argument("--sigmas", nargs="+", type=float, default=list(CONTINUUM))
+    p.add_argument("--heldout", type=int, default=100, help="sequences per noise level")
     p.add_argument("--knots", type=int, default=8)
     p.add_argument("--tau", type=float, default=100.0, help="steps the level is averaged over")
     p.add_argument("--thin", type=int, default=3, help="fit on every THIN-th known step")
