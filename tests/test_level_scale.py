@@ -256,3 +256,21 @@ def test_the_fit_and_the_calibrated_observer_refuse_what_they_cannot_use():
                        torch.zeros(1, 2, 1), (), 2.0)
     with pytest.raises(ValueError, match="LevelScale of the readout's group"):
         CalibratedObserver(obs, _readout(obs), other)
+
+
+def test_the_rigid_body_command_writes_readouts_with_a_level_scale(tmp_path):
+    """The example command, tiny: a readout file per case that loads back with its level scale,
+    and the held-out ANEES before and after."""
+    import json
+
+    from manifold_nets_examples.rigid_body.level_scale import main, zoo_readout
+
+    main(["--out", str(tmp_path), "--cases", "nominal", "--sigmas", "0.1", "0.5", "--heldout", "3"])
+    cal, _ = zoo_readout("nominal")
+    loaded = load_readout(tmp_path / "nominal_covariance.pt", cal.observer)
+    assert isinstance(loaded.level_scale, LevelScale) and loaded.level_scale.first == 10
+    for name, value in cal.readout.state_dict().items():  # the readout itself is the zoo's
+        assert torch.equal(loaded.readout.state_dict()[name], value)
+    report = json.loads((tmp_path / "level_scale.json").read_text())
+    assert set(report["cases"]["nominal"]) == {"0.1", "0.5"}
+    assert set(report["cases"]["nominal"]["0.1"]["R"]) == {"before", "after"}
