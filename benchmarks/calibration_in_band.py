@@ -42,6 +42,7 @@ import torch
 from scipy.stats import chi2, norm
 
 from manifold_nets.calibration import nees, tangent_errors
+from manifold_nets.observer import CovarianceReadout
 from manifold_nets.threads import use_threads
 from manifold_nets.covariance_training import load_readout
 from manifold_nets_examples.rigid_body.calibration import CASES, SIGMAS, SKIP, _sim
@@ -64,7 +65,7 @@ def _read(cal, scale, system, n: int, sigma: float, seed: int) -> dict[str, np.n
         if scale is not None:  # the same rollout's Cholesky factors, scaled
             chol = torch.linalg.cholesky(cov)
             later, _ = scale(chol[:, 1:], scale.initial(chol[:, 0]), 0)
-            covs[" scaled"] = (lambda c: c @ c.transpose(-1, -2))(torch.cat([chol[:, :1], later], 1))
+            covs[" scaled"] = CovarianceReadout.covariance(torch.cat([chol[:, :1], later], 1))
         for f in FACTORS:
             s = g.tangent_slice(f)
             for tag, c in covs.items():

@@ -177,26 +177,33 @@ def _nees_names(readout: CovarianceReadout) -> list[str]:
     return [*readout.group.factor_names, *(["joint"] if readout.structure == "joint" else [])]
 
 
-def _batch_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int):
+def _batch_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int,
+                level_scale: LevelScale | None = None):
     """Per batch of ``seqs``: ``{factor (and "joint" for a joint readout): the NEES at the
-    batch's known steps}``."""
+    batch's known steps}``, under ``level_scale`` when one is given."""
     from .calibration import nees
 
     group, names = readout.group, _nees_names(readout)
     for s in range(0, len(seqs), batch_size):
         part = seqs.select(torch.arange(s, min(len(seqs), s + batch_size)))
-        cov = CovarianceReadout.covariance(readout.log_scale(part.features, part.starts)[0])
+        chol = readout.log_scale(part.features, part.starts)[0]
+        if level_scale is not None:
+            start = level_scale.initial(readout.initial_cholesky((len(part),)))
+            chol, _ = level_scale(chol, start, part.starts)
+        cov = CovarianceReadout.covariance(chol)
         slices = {name: slice(None) if name == "joint" else group.tangent_slice(name) for name in names}
         yield {name: nees(part.errors[..., sl], cov[..., sl, sl])[part.known]
                for name, sl in slices.items()}
 
 
 @torch.no_grad()
-def factor_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int = 200) -> dict[str, float]:
+def factor_nees(readout: CovarianceReadout, seqs: Sequences, batch_size: int = 200,
+                level_scale: LevelScale | None = None) -> dict[str, float]:
     """Per factor ``f`` of dimension ``d``: the mean of ``xi_f^T P_f^-1 xi_f / d`` over ``seqs``'
-    known steps (1 when the readout is calibrated on them)."""
+    known steps (1 when the readout, with ``level_scale`` when one is given, is calibrated on
+    them)."""
     group, totals, count = readout.group, dict.fromkeys(readout.group.factor_names, 0.0), 0
-    for q in _batch_nees(readout, seqs, batch_size):
+    for q in _batch_nees(readout, seqs, batch_size, level_scale):
         for name in totals:
             totals[name] += float(q[name].sum()) / group.factor(name).tangent_dim
         count += len(q[group.factor_names[0]])

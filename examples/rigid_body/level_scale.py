@@ -27,8 +27,6 @@ import json
 import sys
 from pathlib import Path
 
-import torch
-
 from manifold_nets.atomic import write_text_atomic
 from manifold_nets.covariance_training import (
     Sequences,
@@ -38,6 +36,7 @@ from manifold_nets.covariance_training import (
     readout_sequences,
     save_readout,
 )
+from manifold_nets.plugins import zoo_path
 from manifold_nets.threads import use_threads
 
 from .calibration import CASES, SKIP, _sim, _system
@@ -53,8 +52,7 @@ def zoo_readout(case: str):
     system it is scored on."""
     entry, overrides, readout_case = CASES[case]
     observer, system = _system(entry, overrides)
-    folder = Path(__file__).parent / "zoo" / CASES[readout_case][0].split("/")[1]
-    return load_readout(folder / "covariance.pt", observer), system
+    return load_readout(zoo_path(CASES[readout_case][0]) / "covariance.pt", observer), system
 
 
 def _held_out(observer, system, n: int, sigmas) -> list[Sequences]:
@@ -88,31 +86,13 @@ def main(argv=None) -> None:
         rows = {}
         for sigma, seqs in zip(args.sigmas, held):
             before = factor_nees(cal.readout, seqs)
-            after = _scaled_nees(cal.readout, scale, seqs)
+            after = factor_nees(cal.readout, seqs, level_scale=scale)
             rows[str(sigma)] = {f: {"before": round(before[f], 4), "after": round(after[f], 4)}
                                 for f in ("R", "p")}
             print(case, sigma, json.dumps(rows[str(sigma)]), flush=True)
         report["cases"][case] = rows
         write_text_atomic(out / "level_scale.json", json.dumps(report, indent=1))
     print(f"-> {out}")
-
-
-@torch.no_grad()
-def _scaled_nees(readout, scale, seqs: Sequences, batch: int = 100) -> dict[str, float]:
-    """Each factor's mean ``NEES / d`` over ``seqs``' known steps under the scaled covariance."""
-    from manifold_nets.calibration import nees
-
-    g, sums, count = readout.group, {"R": 0.0, "p": 0.0}, 0
-    for s in range(0, len(seqs), batch):
-        part = seqs.select(torch.arange(s, min(len(seqs), s + batch)))
-        chol = readout.log_scale(part.features, part.starts)[0]
-        chol, _ = scale(chol, scale.initial(readout.initial_cholesky((len(part),))), part.starts)
-        cov = chol @ chol.transpose(-1, -2)
-        for f in sums:
-            sl = g.tangent_slice(f)
-            sums[f] += float(nees(part.errors[..., sl], cov[..., sl, sl])[part.known].sum())
-        count += int(part.known.sum())
-    return {f: v / count / g.factor(f).tangent_dim for f, v in sums.items()}
 
 
 if __name__ == "__main__":
