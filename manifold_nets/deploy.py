@@ -131,6 +131,8 @@ def _meta(step: nn.Module, batch: int | None) -> dict[str, Any]:
     obs = step.observer
     prefilter, readout = getattr(step, "prefilter", None), getattr(step, "readout", None)
     initial = step.initial_state(1)
+    # a LockOutGuard's step, alone or under a readout's
+    guard = next((s for s in (step, getattr(step, "step", None)) if hasattr(s, "lock_out")), None)
     return {
         "format": "manifold_nets.online_step/1",
         "signature": obs.signature(),
@@ -148,6 +150,7 @@ def _meta(step: nn.Module, batch: int | None) -> dict[str, Any]:
         "covariance_readout": None if readout is None else readout.signature(),
         **({"level_scale": step.level_scale.signature()}
            if getattr(step, "level_scale", None) is not None else {}),
+        **({"lock_out": guard.lock_out()} if guard is not None else {}),
     }
 
 
@@ -160,7 +163,8 @@ def _online_step(observer) -> nn.Module:
     if not all(hasattr(step, name) for name in ("example_inputs", "state_names", "observer")):
         raise TypeError(
             f"export a ResidualObserver, an EnsembleObserver, a FilteredObserver (an observer "
-            f"behind its readings filter) or a CalibratedObserver, got {type(observer).__name__}."
+            f"behind its readings filter), a LockOutGuard or a CalibratedObserver, got "
+            f"{type(observer).__name__}."
         )
     return step.eval()
 

@@ -15,6 +15,8 @@ a covariance            :class:`CovarianceReadout`, :class:`CalibratedObserver`,
 a readings pre-filter   :class:`ReadingsFilter`, :class:`FilteredObserver`,
                         :func:`with_readings_filter`
 an ensemble of seeds    :class:`EnsembleObserver` (the members' barycentre on the group)
+against lock-out        :class:`LockOutGuard` (re-acquires a factor the robust weights shut
+                        out)
 your own piece          subclass :class:`Prior`, :class:`Feature`, :class:`Head` or
                         :class:`StepScale` with a ``name``: a config may then name it
 ======================  ====================================================================
@@ -27,6 +29,7 @@ from .features import Embedding, Feature, FramedInnovation, Innovation, Readings
 from .filtered import FilteredObserver, FilteredState, with_readings_filter
 from .heads import CentredHead, GainHead, Head, PlainHead
 from .level_scale import LevelScale
+from .lock_out import GuardedRollout, GuardedState, GuardedStep, LockOutGuard
 from .measurement import Measurement, RobustMeasurement, StepView
 from .observer import ObserverState, ResidualObserver, Rollout
 from .piece import PIECES, Piece
@@ -54,4 +57,5 @@ __all__ = [
     "CovarianceReadout", "CalibratedObserver", "CalibratedState", "CalibratedStep", "LevelScale",
     "ReadingsFilter", "FilteredObserver", "FilteredState", "with_readings_filter",
     "EnsembleObserver", "EnsembleState", "EnsembleStep",
+    "LockOutGuard", "GuardedState", "GuardedRollout", "GuardedStep",
 ]

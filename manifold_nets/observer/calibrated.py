@@ -21,9 +21,18 @@ from .covariance import (
     CovarianceReadout, input_width, readout_inputs, steps_taken, with_context,
 )
 from .level_scale import LevelScale
+from .lock_out import LockOutGuard
 from .observer import ObserverState, ResidualObserver
 
 __all__ = ["CalibratedObserver", "CalibratedState", "CalibratedStep"]
+
+
+def _reads(observer) -> ResidualObserver | None:
+    """The :class:`ResidualObserver` a readout of its core or residuals reads in ``observer``:
+    itself, the one a :class:`LockOutGuard` guards, or ``None`` (any other observer)."""
+    if isinstance(observer, LockOutGuard):
+        return observer.observer
+    return observer if isinstance(observer, ResidualObserver) else None
 
 
 class CalibratedState(NamedTuple):
@@ -50,21 +59,22 @@ class CalibratedObserver(nn.Module):
                 "level_scale must be a LevelScale of the readout's group (factors "
                 f"{list(readout.group.factor_names)}), got {type(level_scale).__name__}."
             )
-        if not isinstance(observer, ResidualObserver) and not (
+        reads = _reads(observer)
+        if reads is None and not (
                 readout.source == "readings" and isinstance(observer, nn.Module)
                 and hasattr(observer, "online_step_module")):
             raise TypeError(
-                f"a {readout.source} readout reads one ResidualObserver's "
+                f"a {readout.source} readout reads one ResidualObserver's (or a LockOutGuard's) "
                 f"{'core' if readout.source == 'hidden' else 'measured factors'}; got a "
                 f"{type(observer).__name__}. A readout of source 'readings' serves any observer "
                 "(an EnsembleObserver, a FilteredObserver)."
             )
-        if readout.source == "residual" and not observer.measurement.factors:
+        if readout.source == "residual" and not reads.measurement.factors:
             raise ValueError(
                 "a residual readout reads the measured factors' residuals, but the observer's "
                 "measurement names no measured factor; use source='hidden'."
             )
-        width = input_width(observer, readout.source)
+        width = input_width(observer if reads is None else reads, readout.source)
         if readout.width != width or readout.n != observer.group.tangent_dim:
             raise ValueError(
                 f"the readout reads {readout.width} numbers ({readout.source}) into a "
@@ -77,10 +87,18 @@ class CalibratedObserver(nn.Module):
     def group(self) -> LieGroup:
         return self.observer.group
 
+    @property
+    def reads(self):
+        """The :class:`ResidualObserver` whose core or measured factors the readout reads (the
+        observer, or the one a :class:`LockOutGuard` guards), or the observer itself when the
+        readout reads its readings alone."""
+        reads = _reads(self.observer)
+        return self.observer if reads is None else reads
+
     def inputs(self, x, y, u, hidden, context: torch.Tensor | None = None) -> torch.Tensor:
         """:func:`readout_inputs` of this observer and readout, and the step's ``context``
         (:func:`with_context`)."""
-        z = readout_inputs(self.observer, self.readout.source, x, y, u, hidden)
+        z = readout_inputs(self.reads, self.readout.source, x, y, u, hidden)
         return with_context(self.readout, z, context)
 
     def forward(self, measurements, inputs=None, state: ObserverState | None = None,
@@ -90,7 +108,7 @@ class CalibratedObserver(nn.Module):
         scale's average starting fresh);
         the first covariance is the start's. ``context`` ``(N, T, context)``: the side
         information of each step, for a readout that reads some."""
-        if isinstance(self.observer, ResidualObserver):
+        if _reads(self.observer) is not None:
             run = self.observer.rollout(measurements, inputs, state=state, keep_hidden=True)
             estimates = run.estimates
             z = self.inputs(
@@ -122,7 +140,7 @@ class CalibratedObserver(nn.Module):
              context: torch.Tensor | None = None):
         """One online step: ``(new state, P (B, n, n))``; ``context`` ``(B, context)``."""
         obs = self.observer.step(state.observer, y, u)
-        if isinstance(self.observer, ResidualObserver):
+        if _reads(self.observer) is not None:
             z = self.inputs(obs.estimate.flatten(1), y, u, obs.hidden, context)
         else:  # any other observer, read by its readings alone
             z = self.inputs(None, y, u, None, context)
@@ -155,9 +173,10 @@ class CalibratedStep(nn.Module):
         super().__init__()
         self.step = calibrated.observer.online_step_module()
         self.readout, self.level_scale = calibrated.readout, calibrated.level_scale
-        obs = calibrated.observer
-        self.layers = len(obs.core.initial_hidden(1)) if isinstance(obs, ResidualObserver) else 0
+        obs = _reads(calibrated.observer)
+        self.layers = 0 if obs is None else len(obs.core.initial_hidden(1))
         self.clocked = bool(getattr(self.step, "clock", False))  # the observer counts its steps
+        self.steps_at = self.step.state_names().index("steps") if self.clocked else None
         counts = bool(self.readout.clock) or self.level_scale is not None
         self.own_count = counts and not self.clocked
 
@@ -205,7 +224,7 @@ class CalibratedStep(nn.Module):
         z = readout_inputs(self.step.observer, self.readout.source, out[0], rest[0], u,
                            out[1 : 1 + self.layers])
         z = with_context(self.readout, z, context)
-        start = steps if steps is not None else state[-1] if self.clocked else 0
+        start = steps if steps is not None else state[self.steps_at] if self.clocked else 0
         chol, memory = self.readout.cholesky(z.unsqueeze(1), memory, start)
         levels = ()
         if self.level_scale is not None:
