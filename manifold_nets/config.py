@@ -273,6 +273,11 @@ class EvalConfig:
     #: (``covariance_training.save_readout``) or a zoo entry (``zoo:rigid_body/nominal``: its
     #: ``covariance.pt``). Needs ``calibration=true``.
     covariance: Optional[str] = None
+    #: Guard the learned observer against lock-out (``manifold_nets.observer.LockOutGuard``; an
+    #: observer with ``model.measurement={type: robust}``): ``{tau: 20, floor: 0.1}`` re-acquires
+    #: a measured factor when its learned robust weight averages below ``floor`` over ``tau``
+    #: steps (a setting left out takes that default). ``null`` (or ``{}``): no guard.
+    lock_out: Optional[Any] = None
 
 
 @dataclass

@@ -18,6 +18,7 @@ from __future__ import annotations
 import logging
 import time
 import warnings
+from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -116,6 +117,7 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
             "train.stream=false to train on the file, or drop data_file to simulate."
         )
     _check_covariance(cfg)
+    _check_lock_out(cfg)
     if cfg.method.name == "untrained" and cfg.eval.checkpoint:
         raise ValueError(
             "method=untrained evaluates the observer at its initialisation; it cannot load "
@@ -152,6 +154,44 @@ def _check_covariance(cfg: DictConfig) -> None:
             f"eval.covariance={cfg.eval.covariance!r}: no covariance readout at {path}; give a "
             "covariance.pt (docs/calibration.md) or a zoo entry that ships one."
         )
+
+
+def _check_lock_out(cfg: DictConfig) -> None:
+    """``eval.lock_out``: ``{tau, floor}`` (``null`` or ``{}``: no guard), for the learned
+    observer."""
+    guard = cfg.eval.get("lock_out")
+    if not guard:
+        return
+    if cfg.method.name not in LEARNED_METHODS or cfg.method.target:
+        raise ValueError(
+            f"eval.lock_out guards the learned observer; method={cfg.method.name!r} is another "
+            "estimator (drop eval.lock_out)."
+        )
+    if not isinstance(guard, Mapping) or not set(guard) <= {"tau", "floor"}:
+        raise ValueError(
+            f"eval.lock_out={guard!r} must be a mapping of tau and floor, e.g. "
+            "eval.lock_out='{tau: 20, floor: 0.1}' (null for no guard)."
+        )
+    from manifold_nets.observer import LockOutGuard
+
+    LockOutGuard.check_settings(**guard)
+
+
+def _check_lock_out_model(cfg: DictConfig, system) -> None:
+    """The observer ``eval.lock_out`` guards has a robust measurement: built (cheap) from the
+    config it will have, before the run folder gets anything."""
+    if not cfg.eval.get("lock_out"):
+        return
+    from manifold_nets.observer import LockOutGuard
+
+    learned = cfg.method.name == "learned" and cfg.eval.checkpoint
+    model_cfg = _checkpoint_model(cfg.eval.checkpoint) if learned else cfg.model
+    model = build_observer(system.group, system.measurement_dim, system.input_dim, model_cfg,
+                           dt=getattr(system, "dt", None), system=system)
+    try:
+        LockOutGuard(model, **cfg.eval.lock_out)
+    except ValueError as err:
+        raise ValueError(f"eval.lock_out: {err}") from None
 
 
 def _trains(cfg: DictConfig) -> bool:
@@ -241,6 +281,7 @@ def run(cfg: DictConfig, out_dir: str | Path, *, objective_required: bool = Fals
     if cfg.method.name not in LEARNED_METHODS or cfg.method.target:
         build_estimator_factory(system, cfg.method)  # an unknown method: refused now
     _check_checkpoints(cfg)
+    _check_lock_out_model(cfg, system)
     if _trains(cfg) and cfg.train.param_lr:  # an unknown name: refused before the run folder
         model = build_observer(system.group, system.measurement_dim, system.input_dim, cfg.model,
                                dt=getattr(system, "dt", None), system=system)
@@ -375,13 +416,21 @@ def _estimator(cfg: DictConfig, system, model: ResidualObserver | None, metrics:
                 best_val_loss=ckpt.get("best", {}).get("val_loss"),
             )
             log.info("evaluating %s (epoch %s)", path, ckpt["epoch"])
-        est = ObserverEstimator(model, label, cfg.train.eval_batch_size, cfg.eval.progress)
+        guarded = model
+        if cfg.eval.get("lock_out"):
+            from manifold_nets.observer import LockOutGuard
+
+            guarded = LockOutGuard(model, **cfg.eval.lock_out)
+            metrics["lock_out"] = guarded.settings()
+        est = ObserverEstimator(guarded, label, cfg.train.eval_batch_size, cfg.eval.progress)
         if cfg.eval.covariance:
             from manifold_nets.covariance_training import load_readout
+            from manifold_nets.observer import CalibratedObserver
 
             path = _covariance_file(cfg)
-            est = CalibratedEstimator(load_readout(path, model), label,
-                                      cfg.train.eval_batch_size, cfg.eval.progress)
+            cal = load_readout(path, model)
+            cal = CalibratedObserver(guarded, cal.readout, cal.level_scale)
+            est = CalibratedEstimator(cal, label, cfg.train.eval_batch_size, cfg.eval.progress)
             metrics["covariance"] = str(path)
         return lambda sigma: est
     factory = build_estimator_factory(system, cfg.method)

@@ -128,10 +128,16 @@ class LockOutGuard(nn.Module):
                 "trained with model.measurement={type: robust, ...}."
             )
         self.observer = observer
-        self.tau = _check_setting("tau", tau, 1.0)
-        self.floor = _check_setting("floor", floor, 0.0)
-        if self.floor == 0:
+        self.tau, self.floor = self.check_settings(tau, floor)
+
+    @staticmethod
+    def check_settings(tau: object = 20.0, floor: object = 0.1) -> tuple[float, float]:
+        """``(tau, floor)`` as floats; a ``ValueError`` naming the one that is not a finite
+        number (``tau >= 1``, ``floor > 0``)."""
+        tau, floor = _check_setting("tau", tau, 1.0), _check_setting("floor", floor, 0.0)
+        if floor == 0:
             raise ValueError("LockOutGuard: floor must be > 0 (a floor of 0 never fires).")
+        return tau, floor
 
     # ------------------------------------------------------------------ the observer's description
 
