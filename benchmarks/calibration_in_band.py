@@ -20,6 +20,10 @@ per noise level:
   ``python -m manifold_nets_examples.rigid_body.level_scale --out DIR``: fitted on 400 other
   sequences per noise level, seeds 6000 + i), applied to the same rollout.
 
+``--readouts DIR`` scores other readouts in place of the zoo's (``DIR/<case>_covariance.pt``,
+written by ``python -m manifold_nets_examples.rigid_body.calibration --out DIR``), in every
+column.
+
 The scored sequences are seeds 8000 + i (``--test`` per noise level), neither the paper's sets
 (seed 1) nor the readouts' and level scales' own (1000-3004, 6000-6004)::
 
@@ -96,6 +100,8 @@ def _by_span(anees_k: np.ndarray) -> np.ndarray:
 
 def _case(case: str, args) -> dict:
     cal, system = zoo_readout(case)
+    if args.readouts is not None:  # another readout of the same observer, in the zoo's place
+        cal = load_readout(args.readouts / f"{CASES[case][2]}_covariance.pt", cal.observer)
     cal.eval()
     scale = None
     if args.level_scale is not None:
@@ -149,6 +155,8 @@ def main(argv=None) -> None:
     p.add_argument("--seed", type=int, default=8000, help="the scored sets' seeds: SEED + i")
     p.add_argument("--level-scale", type=Path, default=None,
                    help="a folder of <case>_covariance.pt with level scales to score beside")
+    p.add_argument("--readouts", type=Path, default=None,
+                   help="a folder of <case>_covariance.pt scored in place of the zoo's readouts")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--write", type=Path, default=None, help="also write PATH.md and PATH.json")
     args = p.parse_args(argv)
