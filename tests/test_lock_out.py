@@ -76,6 +76,22 @@ def test_a_locked_out_factor_is_set_to_its_measurement_when_its_average_weight_f
     assert float(plain.flatten(2)[0, -1, p].abs().max()) == 0.0
 
 
+def test_a_rotation_re_acquired_from_a_noisy_embedding_is_a_rotation():
+    """``xhat exp(log(xhat^-1 m))``, not the reading itself: a measured ``vec R`` with noise on
+    its nine entries is no rotation, and the state must stay on the group."""
+    obs = _observer(shut_beyond=1.0)
+    g = torch.Generator().manual_seed(4)
+    turn = SO3().exp(torch.tensor([2.0, 0.0, 0.0], dtype=torch.float64))
+    y = torch.zeros(1, 5, 12, dtype=torch.float64)
+    y[..., :9] = turn.flatten() + 0.05 * torch.randn(1, 5, 9, generator=g, dtype=torch.float64)
+    with torch.no_grad():
+        run = LockOutGuard(obs, tau=2.0, floor=0.4).rollout(y)
+    assert run.resets[0].nonzero().tolist() == [[1, 0]]  # after step 2, factor R
+    rotations = run.estimates[0, :, :9].reshape(-1, 3, 3)
+    assert float(SO3().membership_error(rotations).max()) < 1e-12
+    assert float(SO3().rminus(turn, rotations[2]).norm()) < 0.15  # near the reading
+
+
 @pytest.mark.parametrize("offset", [0.0, 50.0])
 def test_a_guard_that_never_fires_changes_nothing_to_the_last_bit(offset):
     """With identity weights (1 everywhere, above the floor 0.1) nothing is reset, however far

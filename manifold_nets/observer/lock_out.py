@@ -17,7 +17,8 @@ weight that innovation gets, ``w_f(||nu_f||)``, and the average of those weights
     a_f <- a_f + (w_f - a_f) / tau
 
 When ``a_f`` falls below ``floor`` the factor is re-acquired: its estimate is set to the
-measured element, ``xhat_f <- m_f``, and ``a_f`` starts again at 1. The core's state and the
+measured element, ``xhat_f <- xhat_f exp(nu_f)`` (``m_f`` itself for a reading on the group; on
+the group for a noisy embedding too), and ``a_f`` starts again at 1. The core's state and the
 other factors are kept. A guard that never fires leaves the observer's estimates unchanged to
 the last bit (the check and the reset are ``torch.where`` s, no branch).
 
@@ -91,8 +92,8 @@ def reacquire(observer: ResidualObserver, tau: float, floor: float, x: torch.Ten
               average: torch.Tensor):
     """The guard's check after one step of ``observer``: ``x`` ``(B, numel)`` the new estimates
     (state dtype), ``measured`` the measured elements of the step's ``y``, ``average`` ``(B, F)``.
-    Returns ``(x, average, lost)``: the estimates with each lost factor set to its measurement,
-    the new averages, and ``lost`` ``(B, F)`` (bool). One computation for the rollout, the online
+    Returns ``(x, average, lost)``: the estimates with each lost factor set to its measurement
+    (``xhat_f exp(nu_f)``, on the group), the new averages, and ``lost`` ``(B, F)`` (bool). One computation for the rollout, the online
     and the exported step."""
     m = observer.measurement
     nu = m.innovations(x, measured)
@@ -100,10 +101,13 @@ def reacquire(observer: ResidualObserver, tau: float, floor: float, x: torch.Ten
     w = m.robust(norms.to(observer.net_dtype)).to(average.dtype)
     average = average + (w - average) / tau
     lost = average < floor
-    x = x.clone()
-    for j, ((_, xs, _), mf) in enumerate(zip(m.spans, measured)):
-        x[:, xs] = torch.where(lost[:, j : j + 1], mf.reshape(x.shape[0], -1).to(x.dtype), x[:, xs])
-    return x, torch.where(lost, torch.ones_like(average), average), lost
+    new = x.clone()
+    for j, ((f, xs, _), n) in enumerate(zip(m.spans, nu)):
+        # xhat_f exp(nu_f): the measured element, on the group even when the reading is not
+        # quite (a noisy embedding), as the robust measurement forms it
+        at = f.rplus(x[:, xs].unflatten(-1, f.element_shape), n).reshape(x.shape[0], -1)
+        new[:, xs] = torch.where(lost[:, j : j + 1], at.to(x.dtype), x[:, xs])
+    return new, torch.where(lost, torch.ones_like(average), average), lost
 
 
 class LockOutGuard(nn.Module):
