@@ -27,6 +27,7 @@ from torch import nn
 from .ensemble import EnsembleObserver
 from .observer import ObserverState, ResidualObserver
 from .readings_filter import FilterState, ReadingsFilter
+from .wrapper import WrapsObserver
 
 __all__ = ["FilteredObserver", "FilteredState", "FilteredStep", "with_readings_filter"]
 
@@ -46,7 +47,7 @@ def with_readings_filter(observer: ResidualObserver, system, dtype: torch.dtype 
     return observer if prefilter is None else FilteredObserver(prefilter, observer, dtype)
 
 
-class FilteredObserver(nn.Module):
+class FilteredObserver(WrapsObserver):
     """A readings filter, then an observer; see the module docstring.
 
     Args:
@@ -80,30 +81,7 @@ class FilteredObserver(nn.Module):
         self.prefilter, self.observer, self.filter_dtype = prefilter, observer, dtype
 
     # ------------------------------------------------------------------ the observer's description
-
-    @property
-    def group(self):
-        return self.observer.group
-
-    @property
-    def measurement_dim(self) -> int:
-        return self.observer.measurement_dim
-
-    @property
-    def input_dim(self) -> int:
-        return self.observer.input_dim
-
-    @property
-    def state_dtype(self) -> torch.dtype:
-        return self.observer.state_dtype
-
-    @property
-    def net_dtype(self) -> torch.dtype:
-        return self.observer.net_dtype
-
-    @property
-    def device(self) -> torch.device:
-        return self.observer.device
+    # (group, widths, dtypes, device: the observer's, WrapsObserver)
 
     def signature(self) -> dict:
         """The observer's signature with the filter's under ``readings_filter``."""

@@ -45,6 +45,7 @@ from .checks import check_sequences, check_start
 from .measurement import RobustMeasurement
 from .observer import ObserverState, ResidualObserver
 from .robust import safe_norm
+from .wrapper import WrapsObserver
 
 __all__ = ["GuardedRollout", "GuardedState", "GuardedStep", "LockOutGuard", "reacquire"]
 
@@ -110,7 +111,7 @@ def reacquire(observer: ResidualObserver, tau: float, floor: float, x: torch.Ten
     return new, torch.where(lost, torch.ones_like(average), average), lost
 
 
-class LockOutGuard(nn.Module):
+class LockOutGuard(WrapsObserver):
     """An observer with a robust measurement, guarded against lock-out; see the module docstring.
 
     Args:
@@ -144,30 +145,7 @@ class LockOutGuard(nn.Module):
         return tau, floor
 
     # ------------------------------------------------------------------ the observer's description
-
-    @property
-    def group(self):
-        return self.observer.group
-
-    @property
-    def measurement_dim(self) -> int:
-        return self.observer.measurement_dim
-
-    @property
-    def input_dim(self) -> int:
-        return self.observer.input_dim
-
-    @property
-    def state_dtype(self) -> torch.dtype:
-        return self.observer.state_dtype
-
-    @property
-    def net_dtype(self) -> torch.dtype:
-        return self.observer.net_dtype
-
-    @property
-    def device(self) -> torch.device:
-        return self.observer.device
+    # (group, widths, dtypes, device: the observer's, WrapsObserver)
 
     @property
     def factors(self) -> list[str]:
