@@ -7,6 +7,9 @@ weights they get along the run::
     python benchmarks/worst_sequences.py --case outliers --sigma 0.5 --seed 8004
 
 (``--seed`` as :mod:`benchmarks.calibration_in_band` draws them: 8000 + the sigma's index.)
+``--lock-out`` also runs the observer behind a :class:`~manifold_nets.observer.LockOutGuard`
+(tau 20, floor 0.1) over the set: where it re-acquired a factor, and the worst sequence's mean
+and last error with it.
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ import sys
 import torch
 
 from manifold_nets.calibration import nees, tangent_errors
+from manifold_nets.observer import LockOutGuard
 from manifold_nets.threads import use_threads
 from manifold_nets_examples.rigid_body.calibration import CASES, SKIP, _sim
 from manifold_nets_examples.rigid_body.level_scale import zoo_readout
@@ -31,6 +35,7 @@ def main(argv=None) -> None:
     p.add_argument("--factor", default="p", choices=["R", "p"])
     p.add_argument("--top", type=int, default=5)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--lock-out", action="store_true", help="also run it behind a LockOutGuard")
     args = p.parse_args(argv)
     use_threads(args.threads)
     cal, system = zoo_readout(args.case)
@@ -58,6 +63,23 @@ def main(argv=None) -> None:
     robust = getattr(cal.observer.measurement, "robust", None)
     if robust is not None:
         _weights(cal.observer, data.measurements[int(order[0])])
+    if args.lock_out:
+        _guarded(LockOutGuard(cal.observer), data, s, int(order[0]))
+
+
+@torch.no_grad()
+def _guarded(guard: LockOutGuard, data, s: slice, worst: int) -> None:
+    """Where the guard re-acquires a factor over the set, and the worst sequence's error with it."""
+    g, resets = guard.group, []
+    for b in range(0, len(data.measurements), 100):
+        run = guard.rollout(data.measurements[b:b + 100])
+        resets += [(b + i, k + 1, guard.factors[f]) for i, k, f in run.resets.nonzero().tolist()]
+        if b <= worst < b + 100:
+            xi = tangent_errors(g, run.estimates[worst - b], data.states[worst])[SKIP:, s]
+            err = xi.norm(dim=-1)
+    print(f"  behind a LockOutGuard (tau {guard.tau:g}, floor {guard.floor:g}): "
+          f"{len(resets)} re-acquisitions (sequence, after step, factor): {resets}")
+    print(f"    sequence {worst}: mean error {float(err.mean()):.3f}, last {float(err[-1]):.3f}")
 
 
 @torch.no_grad()
