@@ -20,7 +20,8 @@ When ``a_f`` falls below ``floor`` the factor is re-acquired: its estimate is se
 measured element, ``xhat_f <- xhat_f exp(nu_f)`` (``m_f`` itself for a reading on the group; on
 the group for a noisy embedding too), and ``a_f`` starts again at 1. The core's state and the
 other factors are kept. A guard that never fires leaves the observer's estimates unchanged to
-the last bit (the check and the reset are ``torch.where`` s, no branch).
+the last bit (the reset is a ``torch.where``; the eager rollout and step skip it when no factor
+is lost, the exported step does not branch).
 
 The guard runs in the rollout (:meth:`LockOutGuard.rollout`, which also returns where it reset),
 in the online step (:meth:`LockOutGuard.step`; :class:`GuardedState` holds the averages) and in
@@ -90,18 +91,22 @@ def _check_setting(name: str, value: object, low: float) -> float:
 
 
 def reacquire(observer: ResidualObserver, tau: float, floor: float, x: torch.Tensor, measured,
-              average: torch.Tensor):
+              average: torch.Tensor, branch: bool = True):
     """The guard's check after one step of ``observer``: ``x`` ``(B, numel)`` the new estimates
     (state dtype), ``measured`` the measured elements of the step's ``y``, ``average`` ``(B, F)``.
     Returns ``(x, average, lost)``: the estimates with each lost factor set to its measurement
-    (``xhat_f exp(nu_f)``, on the group), the new averages, and ``lost`` ``(B, F)`` (bool). One computation for the rollout, the online
-    and the exported step."""
+    (``xhat_f exp(nu_f)``, on the group), the new averages, and ``lost`` ``(B, F)`` (bool). One
+    computation for the rollout, the online and the exported step; ``branch`` (eager only, not
+    the traced step) returns ``x`` itself at once when no factor is lost, the same values without
+    forming the re-acquired elements."""
     m = observer.measurement
     nu = m.innovations(x, measured)
     norms = torch.stack([safe_norm(n) for n in nu], dim=-1)
     w = m.robust(norms.to(observer.net_dtype)).to(average.dtype)
     average = average + (w - average) / tau
     lost = average < floor
+    if branch and not bool(lost.any()):
+        return x, average, lost
     new = x.clone()
     for j, ((f, xs, _), n) in enumerate(zip(m.spans, nu)):
         # xhat_f exp(nu_f): the measured element, on the group even when the reading is not
@@ -281,5 +286,5 @@ class GuardedStep(nn.Module):
         obs = self.observer
         measured = obs.measurement.elements(rest[0].to(obs.state_dtype))
         x, average, _ = reacquire(obs, self.tau, self.floor, out[0], measured,
-                                  average.to(obs.state_dtype))
+                                  average.to(obs.state_dtype), branch=False)
         return (x, *out[1:], average)
