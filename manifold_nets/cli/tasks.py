@@ -18,7 +18,6 @@ from __future__ import annotations
 import logging
 import time
 import warnings
-from collections.abc import Mapping
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -39,7 +38,6 @@ from manifold_nets.builders import (
 from manifold_nets.checkpoint import load_checkpoint, load_weights, resolve_checkpoint
 from manifold_nets.config import MethodConfig, ModelConfig
 from manifold_nets.datasets import inference_data, training_data
-from manifold_nets.evaluation import CalibratedEstimator, ObserverEstimator
 from manifold_nets.evaluation import evaluate as evaluate_estimator
 from manifold_nets.objective import objective_value, parse_objective
 from manifold_nets.observer import ResidualObserver
@@ -50,6 +48,7 @@ from manifold_nets.training import EpochCallback, check_settings, fit, validatio
 from manifold_nets.training_settings import param_groups
 
 from .common import absolute, check_config, check_sigmas, to_json
+from .learned_extras import check_covariance, check_guarded_model, check_lock_out, learned_estimator
 
 __all__ = ["evaluate", "run", "train"]
 
@@ -116,8 +115,8 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
             f"data_file={cfg.data_file!r} is a file, which has no simulator; set "
             "train.stream=false to train on the file, or drop data_file to simulate."
         )
-    _check_covariance(cfg)
-    _check_lock_out(cfg)
+    check_covariance(cfg)
+    check_lock_out(cfg)
     if cfg.method.name == "untrained" and cfg.eval.checkpoint:
         raise ValueError(
             "method=untrained evaluates the observer at its initialisation; it cannot load "
@@ -125,73 +124,13 @@ def _check_before_work(cfg: DictConfig, objective_required: bool = False) -> Non
         )
 
 
-def _covariance_file(cfg: DictConfig) -> Path:
-    """``eval.covariance`` as a file: a path, or a zoo entry's ``covariance.pt``."""
-    text = str(cfg.eval.covariance)
-    if text.startswith("zoo:"):
-        from manifold_nets.plugins import locate
-
-        return locate(text) / "covariance.pt"
-    return Path(absolute(text))
-
-
-def _check_covariance(cfg: DictConfig) -> None:
-    if not cfg.eval.covariance:
-        return
-    if not cfg.eval.calibration:
-        raise ValueError(
-            f"eval.covariance={cfg.eval.covariance!r} is scored only with eval.calibration=true; "
-            "set it (or drop eval.covariance)."
-        )
-    if cfg.method.name != "learned" or cfg.method.target:
-        raise ValueError(
-            f"eval.covariance is a readout of the learned observer's errors; method="
-            f"{cfg.method.name!r} has its own covariance or none (drop eval.covariance)."
-        )
-    path = _covariance_file(cfg)
-    if not path.is_file():
-        raise ValueError(
-            f"eval.covariance={cfg.eval.covariance!r}: no covariance readout at {path}; give a "
-            "covariance.pt (docs/calibration.md) or a zoo entry that ships one."
-        )
-
-
-def _check_lock_out(cfg: DictConfig) -> None:
-    """``eval.lock_out``: ``{tau, floor}`` (``null`` or ``{}``: no guard), for the learned
-    observer."""
-    guard = cfg.eval.get("lock_out")
-    if not guard:
-        return
-    if cfg.method.name not in LEARNED_METHODS or cfg.method.target:
-        raise ValueError(
-            f"eval.lock_out guards the learned observer; method={cfg.method.name!r} is another "
-            "estimator (drop eval.lock_out)."
-        )
-    if not isinstance(guard, Mapping) or not set(guard) <= {"tau", "floor"}:
-        raise ValueError(
-            f"eval.lock_out={guard!r} must be a mapping of tau and floor, e.g. "
-            "eval.lock_out='{tau: 20, floor: 0.1}' (null for no guard)."
-        )
-    from manifold_nets.observer import LockOutGuard
-
-    LockOutGuard.check_settings(**guard)
-
-
 def _check_lock_out_model(cfg: DictConfig, system) -> None:
-    """The observer ``eval.lock_out`` guards has a robust measurement: built (cheap) from the
-    config it will have, before the run folder gets anything."""
-    if not cfg.eval.get("lock_out"):
-        return
-    from manifold_nets.observer import LockOutGuard
-
-    learned = cfg.method.name == "learned" and cfg.eval.checkpoint
-    model_cfg = _checkpoint_model(cfg.eval.checkpoint) if learned else cfg.model
-    model = build_observer(system.group, system.measurement_dim, system.input_dim, model_cfg,
-                           dt=getattr(system, "dt", None), system=system)
-    try:
-        LockOutGuard(model, **cfg.eval.lock_out)
-    except ValueError as err:
-        raise ValueError(f"eval.lock_out: {err}") from None
+    """:func:`check_guarded_model` of the observer the run evaluates (``eval.checkpoint``'s own
+    model config, else the command's)."""
+    if cfg.eval.get("lock_out"):
+        learned = cfg.method.name == "learned" and cfg.eval.checkpoint
+        check_guarded_model(cfg, system,
+                            _checkpoint_model(cfg.eval.checkpoint) if learned else cfg.model)
 
 
 def _trains(cfg: DictConfig) -> bool:
@@ -416,22 +355,7 @@ def _estimator(cfg: DictConfig, system, model: ResidualObserver | None, metrics:
                 best_val_loss=ckpt.get("best", {}).get("val_loss"),
             )
             log.info("evaluating %s (epoch %s)", path, ckpt["epoch"])
-        guarded = model
-        if cfg.eval.get("lock_out"):
-            from manifold_nets.observer import LockOutGuard
-
-            guarded = LockOutGuard(model, **cfg.eval.lock_out)
-            metrics["lock_out"] = guarded.settings()
-        est = ObserverEstimator(guarded, label, cfg.train.eval_batch_size, cfg.eval.progress)
-        if cfg.eval.covariance:
-            from manifold_nets.covariance_training import load_readout
-            from manifold_nets.observer import CalibratedObserver
-
-            path = _covariance_file(cfg)
-            cal = load_readout(path, model)
-            cal = CalibratedObserver(guarded, cal.readout, cal.level_scale)
-            est = CalibratedEstimator(cal, label, cfg.train.eval_batch_size, cfg.eval.progress)
-            metrics["covariance"] = str(path)
+        est = learned_estimator(cfg, model, label, metrics)
         return lambda sigma: est
     factory = build_estimator_factory(system, cfg.method)
     metrics["method_params"] = dict(cfg.method.params)
