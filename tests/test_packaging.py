@@ -92,7 +92,7 @@ def test_the_commands_load_the_installed_configs_and_are_console_scripts():
 
     assert CONFIG_PATH == "pkg://manifold_nets_configs"
     scripts = PYPROJECT["project"]["scripts"]
-    shared = {"__init__", "common", "tasks"}  # what the commands share, not commands
+    shared = {"__init__", "common", "tasks", "learned_extras"}  # what the commands share, not commands
     commands = [p.stem for p in (ROOT / "manifold_nets" / "cli").glob("*.py") if p.stem not in shared]
     assert set(scripts) == {f"mn-{c}" for c in commands}  # one console script per command
     for name, target in scripts.items():
