@@ -36,7 +36,6 @@ like a plain one, so a covariance readout reads the guarded estimates::
 
 from __future__ import annotations
 
-import math
 from typing import NamedTuple
 
 import torch
@@ -45,6 +44,7 @@ from torch import nn
 from .checks import check_sequences, check_start
 from .measurement import RobustMeasurement
 from .observer import ObserverState, ResidualObserver
+from .piece import check_number
 from .robust import safe_norm
 from .wrapper import WrapsObserver
 
@@ -81,13 +81,6 @@ class GuardedRollout(NamedTuple):
     final: GuardedState
     hidden: tuple | None
     resets: torch.Tensor
-
-
-def _check_setting(name: str, value: object, low: float) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)) \
-            or not low <= value < math.inf:  # fmt: skip
-        raise ValueError(f"LockOutGuard: {name} must be a finite number >= {low:g}, got {value!r}.")
-    return float(value)
 
 
 def reacquire(observer: ResidualObserver, tau: float, floor: float, x: torch.Tensor, measured,
@@ -142,12 +135,10 @@ class LockOutGuard(WrapsObserver):
 
     @staticmethod
     def check_settings(tau: object = 20.0, floor: object = 0.1) -> tuple[float, float]:
-        """``(tau, floor)`` as floats; a ``ValueError`` naming the one that is not a finite
-        number (``tau >= 1``, ``floor > 0``)."""
-        tau, floor = _check_setting("tau", tau, 1.0), _check_setting("floor", floor, 0.0)
-        if floor == 0:
-            raise ValueError("LockOutGuard: floor must be > 0 (a floor of 0 never fires).")
-        return tau, floor
+        """``(tau, floor)`` as floats; a ``ValueError`` naming the one that is not a number in
+        its range (``tau`` in ``[1, 1e12]`` steps, ``floor`` in ``[1e-12, 1e12]``: above 0)."""
+        return (check_number("LockOutGuard: tau", tau, 1.0, 1e12),
+                check_number("LockOutGuard: floor", floor, 1e-12, 1e12))
 
     # ------------------------------------------------------------------ the observer's description
     # (group, widths, dtypes, device: the observer's, WrapsObserver)
