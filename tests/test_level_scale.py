@@ -3,6 +3,7 @@ the rollout, the online and the exported step, its fit, and its file."""
 
 from __future__ import annotations
 
+import copy
 import math
 from functools import partial
 
@@ -259,3 +260,24 @@ def test_the_rigid_body_command_writes_readouts_with_a_level_scale(tmp_path):
     report = json.loads((tmp_path / "level_scale.json").read_text())
     assert set(report["cases"]["nominal"]) == {"0.1", "0.5"}
     assert set(report["cases"]["nominal"]["0.1"]["R"]) == {"before", "after"}
+
+
+def test_the_rigid_body_command_fits_another_readout_given_by_folder(tmp_path):
+    """``--readouts DIR``: the level scale is fitted to ``DIR/<case>_covariance.pt`` (here the
+    zoo's readout with one weight changed), and that readout, not the zoo's, is what it writes."""
+    from manifold_nets.covariance_training import save_readout
+    from manifold_nets_examples.rigid_body.level_scale import main, zoo_readout
+
+    cal, _ = zoo_readout("nominal")
+    other = copy.deepcopy(cal.readout)
+    name, weight = next(iter(other.state_dict().items()))
+    with torch.no_grad():
+        weight.add_(0.01)
+    (tmp_path / "in").mkdir()
+    save_readout(tmp_path / "in" / "nominal_covariance.pt", other, "zoo:rigid_body/nominal")
+    main(["--out", str(tmp_path / "out"), "--cases", "nominal", "--sigmas", "0.1", "0.5",
+          "--heldout", "3", "--readouts", str(tmp_path / "in")])
+    loaded = load_readout(tmp_path / "out" / "nominal_covariance.pt", cal.observer)
+    assert isinstance(loaded.level_scale, LevelScale)
+    assert torch.equal(loaded.readout.state_dict()[name], other.state_dict()[name])
+    assert not torch.equal(loaded.readout.state_dict()[name], cal.readout.state_dict()[name])

@@ -15,7 +15,9 @@ noise level (seeds 6000 + i: neither the readout's training, validation and scal
 between them, ``docs/calibration.md``), and a :class:`~manifold_nets.observer.LevelScale` is
 fitted to its errors there (:func:`manifold_nets.covariance_training.fit_level_scale`: ``--knots``
 points of the readout's level averaged over ``--tau`` steps, times the readout's clock; steps
-``k >= 10``). ``OUT/<case>_covariance.pt`` is the readout with its level scale
+``k >= 10``). ``--readouts DIR`` fits the level scales of other readouts of the same observers
+(``DIR/<case>_covariance.pt``, written by ``python -m manifold_nets_examples.rigid_body.calibration
+--out DIR``) in place of the zoo's. ``OUT/<case>_covariance.pt`` is the readout with its level scale
 (:func:`~manifold_nets.covariance_training.load_readout` reads it back), ``OUT/level_scale.json``
 the held-out ANEES of ``R`` and ``p`` before and after, per noise level.
 """
@@ -70,6 +72,9 @@ def main(argv=None) -> None:
     p.add_argument("--knots", type=int, default=8)
     p.add_argument("--tau", type=float, default=100.0, help="steps the level is averaged over")
     p.add_argument("--thin", type=int, default=3, help="fit on every THIN-th known step")
+    p.add_argument("--readouts", type=Path, default=None,
+                   help="a folder of <case>_covariance.pt (the calibration command's) to fit the "
+                        "level scales of, in place of the zoo's readouts")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
     use_threads(args.threads)
@@ -79,6 +84,8 @@ def main(argv=None) -> None:
               + " ".join(argv if argv is not None else sys.argv[1:]), "cases": {}}
     for case in args.cases:
         cal, system = zoo_readout(case)
+        if args.readouts is not None:
+            cal = load_readout(args.readouts / f"{case}_covariance.pt", cal.observer)
         held = _held_out(cal.observer, system, args.heldout, args.sigmas)
         scale = fit_level_scale(cal.readout, Sequences.cat(held), args.knots, args.tau,
                                 thin=args.thin)
