@@ -1,0 +1,121 @@
+"""One table of every rigid-body readout variant scored by ``calibration_in_band.py``: how close
+each is to calibrated at the paper's five noise levels and between them.
+
+It reads the committed result files (``benchmarks/results/calibration_in_band*.json``; each file's
+own command is in it) and, per variant, reports over its cells (a case, a factor, a noise level):
+the range of the ANEES, the range of the share of steps in the 95 % band, how many cells reach
+the goal's 90 %, and in how many the share in band is above / below the shipped readouts' on the
+same sets. ``outliers p 0.5`` is left out of every count: one of its 1000 sequences loses its
+position (``docs/calibration.md``), which no readout repairs::
+
+    python benchmarks/calibration_variants.py --write benchmarks/results/calibration_variants
+
+Nothing is simulated; it runs in a second.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+RESULTS = Path(__file__).resolve().parent / "results"
+#: label -> (result file, the key its ANEES and share are under: "" for the readouts themselves,
+#: "level scale" for the level scale scored beside them)
+FIVE = {
+    "shipped readouts": ("calibration_in_band", ""),
+    "shipped readouts + level scale fitted at the five levels": ("calibration_in_band", "level scale"),
+    "shipped readouts + level scale fitted on 0.10-0.50": ("calibration_in_band_continuous", "level scale"),
+    "shipped readouts + level scale fitted on 0.06-0.60": ("calibration_in_band_extended", "level scale"),
+    "readouts fitted on 0.10-0.50": ("calibration_in_band_continuum_readouts", ""),
+    "readouts fitted on 0.10-0.50, 0.10 twice (nominal)": (
+        "calibration_in_band_continuum_readouts_w01", ""),
+    "readouts fitted on 0.06-0.60": ("calibration_in_band_extended_readouts", ""),
+    "readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60": (
+        "calibration_in_band_extended_readouts_level_scale", "level scale"),
+}
+BETWEEN = {
+    "shipped readouts": ("calibration_in_band_between", ""),
+    "shipped readouts + level scale fitted at the five levels": ("calibration_in_band_between", "level scale"),
+    "shipped readouts + level scale fitted on 0.10-0.50": ("calibration_in_band_between_continuous", "level scale"),
+    "shipped readouts + level scale fitted on 0.06-0.60": ("calibration_in_band_between_extended", "level scale"),
+    "readouts fitted on 0.10-0.50": ("calibration_in_band_between_continuum_readouts", ""),
+    "readouts fitted on 0.10-0.50, 0.10 twice (nominal)": (
+        "calibration_in_band_between_continuum_readouts_w01", ""),
+    "readouts fitted on 0.06-0.60": ("calibration_in_band_between_extended_readouts", ""),
+    "readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60": (
+        "calibration_in_band_between_extended_readouts_level_scale", "level scale"),
+}
+EXCLUDED = {("outliers", "p 0.5")}
+
+
+def cells(path: Path, key: str) -> dict[tuple[str, str], tuple[float, float]]:
+    """(case, "factor sigma") -> (ANEES, share in band) of one result file, under ``key``."""
+    cases = json.loads(path.read_text())["cases"]
+    anees, share = (f"{key} anees", key) if key else ("anees", "in band")
+    return {(case, cell): (r[anees], r[share]) for case, rows in cases.items()
+            for cell, r in rows.items() if (case, cell) not in EXCLUDED and share in r}
+
+
+def summary(variants: dict, results: Path) -> list[dict]:
+    """One row per variant whose result file exists, compared with the first variant's cells."""
+    rows, reference = [], None
+    for label, (name, key) in variants.items():
+        path = results / f"{name}.json"
+        if not path.exists():
+            continue
+        got = cells(path, key)
+        if not got:
+            continue
+        if reference is None:
+            reference = got
+        anees = [a for a, _ in got.values()]
+        share = [s for _, s in got.values()]
+        common = [c for c in got if c in reference]
+        rows.append({
+            "variant": label, "file": name, "cells": len(got),
+            "anees": (min(anees), max(anees)), "in band": (min(share), max(share)),
+            "at 90 %": sum(s >= 0.9 for s in share),
+            "above shipped": sum(got[c][1] > reference[c][1] for c in common),
+            "below shipped": sum(got[c][1] < reference[c][1] for c in common),
+        })
+    return rows
+
+
+def _table(title: str, rows: list[dict]) -> list[str]:
+    lines = [f"## {title}", "",
+             "| variant | cells | ANEES | in band | cells at 90 % | above / below shipped | file |",
+             "| --- | --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        lines.append(
+            f"| {r['variant']} | {r['cells']} | {r['anees'][0]:.3f}-{r['anees'][1]:.3f} | "
+            f"{100 * r['in band'][0]:.0f}-{100 * r['in band'][1]:.0f} % | {r['at 90 %']} | "
+            f"{r['above shipped']} / {r['below shipped']} | `{r['file']}` |")
+    return lines + [""]
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--results", type=Path, default=RESULTS, help="the folder of result files")
+    p.add_argument("--write", type=Path, default=None, help="also write PATH.md and PATH.json")
+    args = p.parse_args(argv)
+    five, between = summary(FIVE, args.results), summary(BETWEEN, args.results)
+    text = "\n".join(
+        ["# Every readout variant's calibration, at the five noise levels and between them", "",
+         "`python benchmarks/calibration_variants.py --write benchmarks/results/calibration_variants`",
+         "", "Fresh sequences of 1000 steps, 1000 per noise level; a cell is a case, a factor "
+         "(`R`, `p`) and a noise level; `outliers p 0.5` is left out (one sequence loses its "
+         "position). The nominal readout serves the sensor errors too.", ""]
+        + _table("At the paper's five noise levels (seeds 8000 + i)", five)
+        + _table("Between them: sigma 0.15, 0.25, 0.35, 0.45 (seeds 9000 + i; nominal, "
+                 "outliers, AR(1) noise)", between))
+    if args.write is not None:
+        args.write.with_suffix(".json").write_text(
+            json.dumps({"five levels": five, "between": between}, indent=1))
+        args.write.with_suffix(".md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

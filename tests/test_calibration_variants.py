@@ -1,0 +1,46 @@
+"""The summary of ``benchmarks/calibration_variants.py`` on result files made up here: each
+variant's cells read under its own key, the excluded cell left out, and the counts against the
+first variant's cells."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+from pathlib import Path
+
+import pytest
+
+_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration_variants.py"
+
+
+@pytest.fixture(scope="module")
+def cv():
+    spec = importlib.util.spec_from_file_location("calibration_variants", _PATH)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def _row(anees, share, scaled=None):
+    row = {"anees": anees, "in band": share}
+    if scaled is not None:
+        row |= {"level scale anees": scaled[0], "level scale": scaled[1]}
+    return row
+
+
+def test_the_summary_counts_cells_under_each_variant_s_key(cv, tmp_path):
+    shipped = {"nominal": {"R 0.1": _row(1.10, 0.10, (1.00, 0.95)), "p 0.1": _row(0.95, 0.80, (0.99, 0.70))},
+               "outliers": {"p 0.5": _row(6.0, 0.0, (5.0, 0.0)), "R 0.5": _row(1.0, 0.90, (1.0, 0.90))}}
+    other = {"nominal": {"R 0.1": _row(1.02, 0.50), "p 0.1": _row(0.97, 0.85)}}
+    (tmp_path / "a.json").write_text(json.dumps({"command": "x", "cases": shipped}))
+    (tmp_path / "b.json").write_text(json.dumps({"command": "y", "cases": other}))
+    rows = cv.summary({"shipped": ("a", ""), "scaled": ("a", "level scale"), "other": ("b", ""),
+                       "absent": ("c", "")}, tmp_path)
+    assert [r["variant"] for r in rows] == ["shipped", "scaled", "other"]  # no file, no row
+    first, scaled, other_row = rows
+    assert first["cells"] == 3 and first["anees"] == (0.95, 1.10)  # outliers p 0.5 left out
+    assert first["at 90 %"] == 1 and (first["above shipped"], first["below shipped"]) == (0, 0)
+    assert scaled["anees"] == (0.99, 1.0) and scaled["at 90 %"] == 2
+    assert (scaled["above shipped"], scaled["below shipped"]) == (1, 1)
+    assert other_row["cells"] == 2 and (other_row["above shipped"], other_row["below shipped"]) == (2, 0)
+    assert other_row["in band"] == (0.5, 0.85)
