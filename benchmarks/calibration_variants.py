@@ -29,8 +29,7 @@ FIVE = {
     "shipped readouts + level scale fitted on 0.10-0.50": ("calibration_in_band_continuous", "level scale"),
     "shipped readouts + level scale fitted on 0.06-0.60": ("calibration_in_band_extended", "level scale"),
     "readouts fitted on 0.10-0.50": ("calibration_in_band_continuum_readouts", ""),
-    "readouts fitted on 0.10-0.50, 0.10 twice (nominal)": (
-        "calibration_in_band_continuum_readouts_w01", ""),
+    "readouts fitted on 0.10-0.50, 0.10 twice": ("calibration_in_band_w01_readouts", ""),
     "readouts fitted on 0.06-0.60": ("calibration_in_band_extended_readouts", ""),
     "readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60": (
         "calibration_in_band_extended_readouts_level_scale", "level scale"),
@@ -41,8 +40,7 @@ BETWEEN = {
     "shipped readouts + level scale fitted on 0.10-0.50": ("calibration_in_band_between_continuous", "level scale"),
     "shipped readouts + level scale fitted on 0.06-0.60": ("calibration_in_band_between_extended", "level scale"),
     "readouts fitted on 0.10-0.50": ("calibration_in_band_between_continuum_readouts", ""),
-    "readouts fitted on 0.10-0.50, 0.10 twice (nominal)": (
-        "calibration_in_band_between_continuum_readouts_w01", ""),
+    "readouts fitted on 0.10-0.50, 0.10 twice": ("calibration_in_band_between_w01_readouts", ""),
     "readouts fitted on 0.06-0.60": ("calibration_in_band_between_extended_readouts", ""),
     "readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60": (
         "calibration_in_band_between_extended_readouts_level_scale", "level scale"),
