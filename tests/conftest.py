@@ -6,6 +6,8 @@
   ``pytest --hypothesis-profile=dev`` or ``HYPOTHESIS_PROFILE=dev pytest``.
 * One torch thread per process: tensors in tests are small, and ``pytest -n 2`` on two cores
   would otherwise oversubscribe them (each worker starting one thread per core).
+* ``load_script``: imports a script of the checkout that is not a package module (a benchmark)
+  by its path from the repository root.
 * ``--device`` (or ``MN_TEST_DEVICE``): where the device-agnostic tests put their tensors
   (the fixture ``device``; default ``cpu``, which CI uses). ``pytest --device cuda
   tests/test_group_axioms.py tests/test_device.py`` runs the group axioms, the observer, training,
@@ -14,7 +16,9 @@
 
 from __future__ import annotations
 
+import importlib.util
 import os
+from pathlib import Path
 
 import pytest
 import torch
@@ -49,3 +53,18 @@ def pytest_configure(config: pytest.Config) -> None:
 def device(request: pytest.FixtureRequest) -> torch.device:
     """The device the device-agnostic tests run on (``--device``; default cpu)."""
     return torch.empty(0, device=request.config.getoption("--device")).device
+
+
+@pytest.fixture(scope="session")
+def load_script():
+    """``load_script("benchmarks/x.py")``: the script imported as a module of its own name."""
+    root = Path(__file__).resolve().parents[1]
+
+    def load(relative: str):
+        path = root / relative
+        spec = importlib.util.spec_from_file_location(path.stem, path)
+        module = importlib.util.module_from_spec(spec)
+        spec.loader.exec_module(module)
+        return module
+
+    return load

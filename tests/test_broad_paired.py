@@ -4,23 +4,16 @@ scipy's, on differences made up here (the BROAD data are not needed)."""
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
-from pathlib import Path
 
 import numpy as np
 import pytest
 from scipy import stats
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "broad_paired.py"
-
 
 @pytest.fixture(scope="module")
-def bp():
-    spec = importlib.util.spec_from_file_location("broad_paired", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def bp(load_script):
+    return load_script("benchmarks/broad_paired.py")
 
 
 def _brute(d: np.ndarray) -> float:

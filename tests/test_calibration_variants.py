@@ -4,21 +4,14 @@ first variant's cells."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-_PATH = Path(__file__).resolve().parents[1] / "benchmarks" / "calibration_variants.py"
-
 
 @pytest.fixture(scope="module")
-def cv():
-    spec = importlib.util.spec_from_file_location("calibration_variants", _PATH)
-    module = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(module)
-    return module
+def cv(load_script):
+    return load_script("benchmarks/calibration_variants.py")
 
 
 def _row(anees, share, scaled=None):
