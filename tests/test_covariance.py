@@ -82,7 +82,7 @@ def _measurements(n, t, seed=5):
 
 
 @pytest.mark.parametrize("clock", [(), (2.0, 5.0)])
-@pytest.mark.parametrize("source", ["residual", "hidden", "readings"])
+@pytest.mark.parametrize("source", ["residual", "residual_size", "hidden", "readings"])
 def test_rollout_online_and_exported_steps_give_the_same_estimates_and_covariances(source, clock):
     obs = _observer()
     r = CovarianceReadout(GROUP, input_width(obs, source), "factor", memory=4, source=source,
@@ -107,6 +107,34 @@ def test_rollout_online_and_exported_steps_give_the_same_estimates_and_covarianc
             assert_covariances_close(P, cov[:, k + 1])
             assert_covariances_close(P_exp, cov[:, k + 1])
             torch.testing.assert_close(flat[0], est[:, k + 1].reshape(3, -1), rtol=0, atol=1e-12)
+
+
+def test_a_size_readout_reads_the_residuals_and_the_log_of_each_factor_s_squared_size(tmp_path):
+    from manifold_nets.covariance_training import load_readout, save_readout
+    from manifold_nets.observer.covariance import readout_inputs
+
+    obs = _observer()
+    assert input_width(obs, "residual_size") == input_width(obs, "residual") + 2
+    y = _measurements(2, 5)
+    with torch.no_grad():
+        run = obs.rollout(y, keep_hidden=True)
+        x = run.estimates[:, 1:].flatten(2)
+        plain = readout_inputs(obs, "residual", x, y, None, None)
+        sized = readout_inputs(obs, "residual_size", x, y, None, None)
+    assert sized.shape == (2, 5, 8) and torch.equal(sized[..., :6], plain)
+    # R's residual is the rotation vector from the estimate to the measurement: its angle
+    r_hat = x[..., :9].reshape(2, 5, 3, 3).double()
+    r_meas = y[..., :9].reshape(2, 5, 3, 3)
+    cos = ((r_hat.mT @ r_meas).diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2
+    angle = torch.arccos(cos.clamp(-1, 1))
+    torch.testing.assert_close(sized[..., 6], (angle.square() + 1e-12).log().float(), atol=1e-4, rtol=1e-4)
+    p_res = (y[..., 9:] - x[..., 9:12].double()).square().sum(-1)
+    torch.testing.assert_close(sized[..., 7], (p_res + 1e-12).log().float(), atol=1e-4, rtol=1e-4)
+    r = CovarianceReadout(GROUP, 8, "factor", memory=3, source="residual_size")
+    save_readout(tmp_path / "s.pt", r, observer="test")
+    with torch.no_grad():
+        torch.testing.assert_close(load_readout(tmp_path / "s.pt", obs)(y)[1],
+                                   CalibratedObserver(obs, r)(y)[1], rtol=0, atol=0)
 
 
 def test_a_readout_of_another_width_or_source_is_refused():

@@ -69,7 +69,7 @@ class CalibratedObserver(nn.Module):
                 f"{type(observer).__name__}. A readout of source 'readings' serves any observer "
                 "(an EnsembleObserver, a FilteredObserver)."
             )
-        if readout.source == "residual" and not reads.measurement.factors:
+        if readout.source in ("residual", "residual_size") and not reads.measurement.factors:
             raise ValueError(
                 "a residual readout reads the measured factors' residuals, but the observer's "
                 "measurement names no measured factor; use source='hidden'."

@@ -8,6 +8,10 @@ right perturbation, as in the project's EKF: :mod:`manifold_nets.ekf`). A
 * ``"residual"`` (default where the measurement names measured factors): the residual of the
   step's measurement against the new estimate, ``log(xhat_{k,f}^-1 m_{k,f})`` per measured factor
   (what the update left unexplained: its size follows the noise level);
+* ``"residual_size"``: the same residuals and, per measured factor, the log of their squared size
+  ``log(|nu_f|^2 + 1e-12)``, which reads a small residual's size as sharply as a large one's
+  (the signed residuals, standardised over every noise level, reach the GRU's nonlinearity only
+  as a second-order effect when they are small);
 * ``"hidden"``: the core's hidden state after the step;
 * ``"readings"``: the step's measurement and input ``(y_k, u_{k-1})`` as they are (for observers
   that measure no factor, e.g. an IMU's: how fast it turns and how far the accelerometer is from
@@ -67,7 +71,9 @@ __all__ = [
 STRUCTURES = ("diagonal", "factor", "joint")
 #: The widest memory a readout may have (the shipped ones: 32); a file asking for more is refused.
 MAX_MEMORY = 4096
-SOURCES = ("residual", "hidden", "readings")
+SOURCES = ("residual", "residual_size", "hidden", "readings")
+#: Added to a squared residual before its log (``"residual_size"``).
+SIZE_FLOOR = 1e-12
 
 
 def hidden_features(hidden: Hidden) -> torch.Tensor:
@@ -83,7 +89,8 @@ def input_width(observer: ResidualObserver, source: str) -> int:
         return hidden_features(observer.core.initial_hidden(1)).shape[-1]
     if source == "readings":
         return observer.measurement_dim + observer.input_dim
-    return observer.measurement.innovation_dim
+    sizes = len(observer.measurement.factors) if source == "residual_size" else 0
+    return observer.measurement.innovation_dim + sizes
 
 
 def readout_inputs(observer: ResidualObserver, source: str, x: torch.Tensor, y: torch.Tensor,
@@ -98,7 +105,9 @@ def readout_inputs(observer: ResidualObserver, source: str, x: torch.Tensor, y: 
     m = observer.measurement
     lead = x.shape[:-1]
     ys = y.reshape(-1, y.shape[-1]).to(observer.state_dtype)
-    nu = m.innovations(x.reshape(-1, x.shape[-1]), m.elements(ys))
+    nu = list(m.innovations(x.reshape(-1, x.shape[-1]), m.elements(ys)))
+    if source == "residual_size":
+        nu += [(v.square().sum(-1, keepdim=True) + SIZE_FLOOR).log() for v in nu]
     return torch.cat(nu, dim=-1).reshape(*lead, -1).float()
 
 
@@ -149,7 +158,8 @@ class CovarianceReadout(nn.Module):
         width: how many numbers it reads per step (:func:`input_width`).
         structure: ``"diagonal"``, ``"factor"`` or ``"joint"``.
         memory: the width of the readout's own GRU; 0 for a memoryless linear readout.
-        source: ``"residual"``, ``"hidden"`` or ``"readings"`` (what it reads; module docstring).
+        source: ``"residual"``, ``"residual_size"``, ``"hidden"`` or ``"readings"`` (what it
+            reads; module docstring).
         clock: time constants in steps; the readout also reads ``exp(-k / tau)`` at step ``k``.
         context: how many numbers of side information it reads per step beside the source's
             (0: none; module docstring).
