@@ -107,7 +107,8 @@ def test_shapes_are_checked():
         calibration(GROUP, torch.zeros(2, 3, 5), torch.zeros(2, 3, 5, 5))
 
 
-def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout(tmp_path):
+@pytest.mark.parametrize("source", ["residual", "residual_size"])
+def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout(tmp_path, source):
     """The command of docs/calibration.md at a tiny size: the table rows for both estimators,
     the figure, and a readout that loads back onto the zoo entry."""
     import json
@@ -117,7 +118,8 @@ def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout
     from manifold_nets_examples.rigid_body import calibration as command
 
     command.main(["--out", str(tmp_path), "--cases", "nominal", "--sigmas", "0.3", "--train", "2",
-                  "--eval", "3", "--length", "30", "--epochs", "1", "--heldout", "2"])
+                  "--eval", "3", "--length", "30", "--epochs", "1", "--heldout", "2",
+                  "--source", source])
     table = (tmp_path / "calibration.md").read_text()
     assert "| 0.3 | learned |" in table and "| 0.3 | ekf |" in table
     rows = json.loads((tmp_path / "calibration.json").read_text())["cases"]["nominal"]["0.3"]
@@ -128,7 +130,8 @@ def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout
     scales = json.loads((tmp_path / "calibration.json").read_text())["history"]["nominal"]["heldout_scales"]
     assert set(scales) == {"R", "p", "b_omega", "b_v"} and all(v > 0 for v in scales.values())
     observer, _, _ = load_observer("zoo:rigid_body/nominal")
-    assert load_readout(tmp_path / "nominal_covariance.pt", observer).readout.clock == command.CLOCK
+    readout = load_readout(tmp_path / "nominal_covariance.pt", observer).readout
+    assert readout.clock == command.CLOCK and readout.source == source
 
 
 def test_evaluate_scores_the_covariance_of_an_estimator_that_gives_one():

@@ -281,3 +281,24 @@ def test_the_rigid_body_command_fits_another_readout_given_by_folder(tmp_path):
     assert isinstance(loaded.level_scale, LevelScale)
     assert torch.equal(loaded.readout.state_dict()[name], other.state_dict()[name])
     assert not torch.equal(loaded.readout.state_dict()[name], cal.readout.state_dict()[name])
+
+
+def test_the_rigid_body_command_reads_the_held_out_sequences_as_the_given_readout_does(tmp_path):
+    """A readout of another source (the residuals and their log size: 8 numbers a step, not 6)
+    gets its level scale fitted on its own inputs."""
+    from manifold_nets.covariance_training import save_readout
+    from manifold_nets.observer import CovarianceReadout
+    from manifold_nets.observer.covariance import input_width
+    from manifold_nets_examples.rigid_body.level_scale import main, zoo_readout
+
+    cal, _ = zoo_readout("nominal")
+    torch.manual_seed(0)
+    sized = CovarianceReadout(cal.observer.group, input_width(cal.observer, "residual_size"),
+                              "factor", memory=4, source="residual_size")
+    (tmp_path / "in").mkdir()
+    save_readout(tmp_path / "in" / "nominal_covariance.pt", sized, "zoo:rigid_body/nominal")
+    main(["--out", str(tmp_path / "out"), "--cases", "nominal", "--sigmas", "0.1", "0.5",
+          "--heldout", "3", "--readouts", str(tmp_path / "in")])
+    loaded = load_readout(tmp_path / "out" / "nominal_covariance.pt", cal.observer)
+    assert loaded.readout.source == "residual_size" and loaded.readout.width == 8
+    assert isinstance(loaded.level_scale, LevelScale)

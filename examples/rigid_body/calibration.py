@@ -10,7 +10,8 @@ every noise level and under each model mismatch.
 For each case (a zoo observer and the system it is scored on):
 
 1. a :class:`~manifold_nets.observer.CovarianceReadout` (per-factor blocks, reading the residuals
-   of the measured pose and a clock of the step, ``--clock`` time constants; a 32-wide memory) is
+   of the measured pose, with ``--source residual_size`` also the log of each factor's squared
+   residual, and a clock of the step, ``--clock`` time constants; a 32-wide memory) is
    fitted to the frozen observer's errors on ``--train`` sequences of ``--length`` steps per
    noise level of the case's own system (seeds 1000 + i; ``--train / 4`` more, seeds 2000 + i,
    pick the epoch: :func:`manifold_nets.covariance_training.fit_covariance`), each factor's
@@ -86,7 +87,8 @@ def _sim(system, n: int, length: int, sigma: float, seed: int):
 
 def _sequences(observer, system, args, n: int, seed: int) -> Sequences:
     return Sequences.cat([
-        readout_sequences(observer, _sim(system, n, args.length, s, seed + i), skip=SKIP)
+        readout_sequences(observer, _sim(system, n, args.length, s, seed + i), args.source,
+                          skip=SKIP)
         for i, s in enumerate(args.sigmas)
     ])
 
@@ -94,10 +96,10 @@ def _sequences(observer, system, args, n: int, seed: int) -> Sequences:
 def _fit(observer, system, args) -> tuple[CovarianceReadout, dict]:
     train = _sequences(observer, system, args, args.train, 1000)
     val = _sequences(observer, system, args, max(2, args.train // 4), 2000)
-    width = input_width(observer, "residual")
+    width = input_width(observer, args.source)
     torch.manual_seed(args.seed)  # the readout's initial weights
     readout = CovarianceReadout(observer.group, width, "factor", memory=args.memory,
-                                clock=tuple(args.clock))
+                                source=args.source, clock=tuple(args.clock))
     history = fit_covariance(readout, train, val, epochs=args.epochs, lr=args.lr,
                              batch_size=args.batch_size)
     scales = None
@@ -172,6 +174,9 @@ def main(argv=None) -> None:
     p.add_argument("--heldout", type=int, default=40,
                    help="fresh sequences per noise level each factor's scale is set on (0: none)")
     p.add_argument("--memory", type=int, default=32)
+    p.add_argument("--source", default="residual", choices=("residual", "residual_size"),
+                   help="what the readout reads: the measured pose's residuals, or those and "
+                        "the log of each factor's squared residual")
     p.add_argument("--seed", type=int, default=0, help="the readouts' initial weights")
     p.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)

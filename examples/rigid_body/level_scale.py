@@ -57,8 +57,8 @@ def zoo_readout(case: str):
     return load_readout(zoo_path(CASES[readout_case][0]) / "covariance.pt", observer), system
 
 
-def _held_out(observer, system, n: int, sigmas) -> list[Sequences]:
-    return [readout_sequences(observer, _sim(system, n, 1000, s, 6000 + i), skip=SKIP)
+def _held_out(observer, system, n: int, sigmas, source: str) -> list[Sequences]:
+    return [readout_sequences(observer, _sim(system, n, 1000, s, 6000 + i), source, skip=SKIP)
             for i, s in enumerate(sigmas)]
 
 
@@ -86,7 +86,7 @@ def main(argv=None) -> None:
         cal, system = zoo_readout(case)
         if args.readouts is not None:
             cal = load_readout(args.readouts / f"{case}_covariance.pt", cal.observer)
-        held = _held_out(cal.observer, system, args.heldout, args.sigmas)
+        held = _held_out(cal.observer, system, args.heldout, args.sigmas, cal.readout.source)
         scale = fit_level_scale(cal.readout, Sequences.cat(held), args.knots, args.tau,
                                 thin=args.thin)
         save_readout(out / f"{case}_covariance.pt", cal.readout, f"zoo:{CASES[case][0]}", scale)
