@@ -33,6 +33,8 @@ FIVE = {
     "readouts fitted on 0.06-0.60": ("calibration_in_band_extended_readouts", ""),
     "readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60": (
         "calibration_in_band_extended_readouts_level_scale", "level scale"),
+    "readouts reading the residuals' log size (shipped recipe)": (
+        "calibration_in_band_size_readouts", ""),
 }
 #: the same variants between the levels: each file's ``_between`` twin (``--seed 9000``)
 BETWEEN = {label: (name.replace("calibration_in_band", "calibration_in_band_between", 1), key)
