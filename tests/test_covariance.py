@@ -137,6 +137,25 @@ def test_a_size_readout_reads_the_residuals_and_the_log_of_each_factor_s_squared
                                    CalibratedObserver(obs, r)(y)[1], rtol=0, atol=0)
 
 
+def test_sequences_read_for_another_source_are_refused_with_the_fix():
+    from manifold_nets.covariance_training import factor_nees, readout_sequences
+    from manifold_nets.observer.covariance import SOURCES
+
+    from manifold_nets.trajectory_dataset import TrajectoryDataset
+
+    obs = _observer()
+    gen = torch.Generator().manual_seed(3)
+    states = GROUP.random((2, 6), generator=gen, dtype=torch.float64)
+    data = TrajectoryDataset(states, _measurements(2, 5), torch.zeros(2, 5, 0), {})
+    plain = readout_sequences(obs, data, "residual")
+    sized = CovarianceReadout(GROUP, input_width(obs, "residual_size"), memory=2, source="residual_size")
+    with pytest.raises(ValueError, match=r"reads 8 numbers a step, the sequences give 6: .*'residual_size'"):
+        fit_covariance(sized, plain, plain, epochs=1)
+    with pytest.raises(ValueError, match="reads 8 numbers"):
+        factor_nees(sized, plain)
+    assert set(SOURCES) == {"residual", "residual_size", "hidden", "readings"}
+
+
 def test_a_readout_of_another_width_or_source_is_refused():
     obs = _observer()
     with pytest.raises(ValueError, match="reads 99 numbers"):

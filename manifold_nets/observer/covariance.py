@@ -202,9 +202,21 @@ class CovarianceReadout(nn.Module):
             **({"context": self.context} if self.context else {}),
         }
 
+    def check_width(self, inputs: torch.Tensor) -> None:
+        """``ValueError`` naming the fix unless ``inputs`` ``(..., W)`` are as wide as what this
+        readout reads (sequences read for another source or without the context)."""
+        want = self.width + self.context
+        if inputs.shape[-1] != want:
+            context = f", context=<{self.context} numbers a step>" if self.context else ""
+            raise ValueError(
+                f"this readout reads {want} numbers a step, the sequences give {inputs.shape[-1]}: "
+                f"read them as it does, readout_sequences(observer, data, {self.source!r}{context})."
+            )
+
     def set_input_stats(self, inputs: torch.Tensor) -> None:
         """Standardises the inputs by their mean and standard deviation over ``inputs``
         ``(M, width + context)`` (the training data's known steps)."""
+        self.check_width(inputs)
         with torch.no_grad():
             self.shift.copy_(inputs.mean(0))
             self.scale.copy_(inputs.std(0).clamp_min(1e-12))
@@ -291,7 +303,9 @@ class CovarianceReadout(nn.Module):
 
     def log_scale(self, inputs: torch.Tensor, start=0) -> tuple[torch.Tensor, torch.Tensor]:
         """For the likelihood, over sequences from the initial memory (``start`` steps after the
-        observer's start): ``(L, log diag L)``."""
+        observer's start): ``(L, log diag L)``; ``ValueError`` naming the fix when ``inputs`` are
+        not as wide as what this readout reads."""
+        self.check_width(inputs)
         raw, _ = self.raw(inputs, self.initial_memory(inputs.shape[0], inputs.device), start)
         raw = raw.double()
         return self._factor(raw), raw[..., self.diagonal]
