@@ -132,6 +132,12 @@ def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout
     observer, _, _ = load_observer("zoo:rigid_body/nominal")
     readout = load_readout(tmp_path / "nominal_covariance.pt", observer).readout
     assert readout.clock == command.CLOCK and readout.source == source
+    # --readouts: the same readout scored as it is, not fitted again: the same table
+    command.main(["--out", str(tmp_path / "again"), "--cases", "nominal", "--sigmas", "0.3",
+                  "--eval", "3", "--length", "30", "--readouts", str(tmp_path)])
+    again = json.loads((tmp_path / "again" / "calibration.json").read_text())
+    assert again["cases"]["nominal"]["0.3"] == rows and "loaded" in again["history"]["nominal"]
+    assert not (tmp_path / "again" / "nominal_covariance.pt").exists()
 
 
 def test_evaluate_scores_the_covariance_of_an_estimator_that_gives_one():

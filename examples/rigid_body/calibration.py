@@ -28,7 +28,8 @@ For each case (a zoo observer and the system it is scored on):
 Writes ``OUT/calibration.md`` (the tables), ``OUT/calibration.json`` and
 ``OUT/calibration_<case>.png`` (one sequence's attitude and position errors with the +-3 sigma
 bands of both, at sigma 0.3). The sensor-error case is scored with the nominal observer (one zoo
-entry serves both) and the nominal readout.
+entry serves both) and the nominal readout. ``--readouts DIR`` skips step 1 and scores
+``DIR/<case>_covariance.pt`` as they are (e.g. the zoo's, or readouts fitted one case a process).
 """
 
 from __future__ import annotations
@@ -46,6 +47,7 @@ from manifold_nets.calibration import calibration, tangent_errors
 from manifold_nets.covariance_training import (
     Sequences,
     fit_covariance,
+    load_readout,
     readout_sequences,
     save_readout,
     scale_to_heldout,
@@ -178,6 +180,9 @@ def main(argv=None) -> None:
                    help="what the readout reads: the measured pose's residuals, or those and "
                         "the log of each factor's squared residual")
     p.add_argument("--seed", type=int, default=0, help="the readouts' initial weights")
+    p.add_argument("--readouts", type=Path, default=None,
+                   help="a folder of <case>_covariance.pt to score as they are, in place of "
+                        "fitting (its readouts must fit the cases' zoo observers)")
     p.add_argument("--threads", type=int, default=None)
     args = p.parse_args(argv)
     use_threads(args.threads)
@@ -190,7 +195,13 @@ def main(argv=None) -> None:
     for case in args.cases:
         entry, overrides, readout_case = CASES[case]
         observer, system = _system(entry, overrides)
-        if readout_case not in readouts:
+        if readout_case in readouts:
+            pass
+        elif args.readouts is not None:  # scored as they are: nothing fitted, nothing written
+            path = args.readouts / f"{readout_case}_covariance.pt"
+            readouts[readout_case] = load_readout(path, observer).readout
+            results["history"][readout_case] = {"loaded": str(path)}
+        else:
             fit_obs, fit_sys = _system(*CASES[readout_case][:2])
             readouts[readout_case], results["history"][readout_case] = _fit(fit_obs, fit_sys, args)
             save_readout(
