@@ -37,6 +37,8 @@ FIVE = {
         "calibration_in_band_size_readouts", ""),
     "readouts reading the residuals' log size + level scale fitted at the five levels": (
         "calibration_in_band_size_readouts_level_scale", "level scale"),
+    "readouts reading the residuals' log size + level scale fitted on 0.10-0.50": (
+        "calibration_in_band_size_readouts_continuous", "level scale"),
 }
 #: the same variants between the levels: each file's ``_between`` twin (``--seed 9000``)
 BETWEEN = {label: (name.replace("calibration_in_band", "calibration_in_band_between", 1), key)
