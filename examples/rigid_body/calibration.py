@@ -195,13 +195,12 @@ def main(argv=None) -> None:
     for case in args.cases:
         entry, overrides, readout_case = CASES[case]
         observer, system = _system(entry, overrides)
-        if readout_case in readouts:
-            pass
-        elif args.readouts is not None:  # scored as they are: nothing fitted, nothing written
+        if readout_case not in readouts and args.readouts is not None:
+            # scored as they are: nothing fitted, nothing written
             path = args.readouts / f"{readout_case}_covariance.pt"
             readouts[readout_case] = load_readout(path, observer).readout
             results["history"][readout_case] = {"loaded": str(path)}
-        else:
+        elif readout_case not in readouts:
             fit_obs, fit_sys = _system(*CASES[readout_case][:2])
             readouts[readout_case], results["history"][readout_case] = _fit(fit_obs, fit_sys, args)
             save_readout(
