@@ -8,7 +8,9 @@ paper's sets score them) this simulates fresh sequences of 1000 steps per noise 
 step's ``NEES / 3`` of ``R`` and ``p`` and the readout's level (``log det P_f / 3``), and reports
 per noise level:
 
-* **as shipped**: the ANEES and the share of steps whose ANEES is inside the band;
+* **as shipped**: the ANEES and the share of steps whose ANEES is inside the band (the readout
+  with the level scale its file holds, as the zoo's do; with ``--level-scale``, the readout
+  alone);
 * **ceiling**: the share expected if the level were exactly 1 at every step, given how much the
   errors' NEES spreads over sequences at each step (heavy tails widen it past the chi-square's);
 * **oracle level**, **oracle level x time**: the share after dividing by the set's own mean (per
@@ -18,7 +20,8 @@ per noise level:
 * **level scale**: the same with the readout's :class:`~manifold_nets.observer.LevelScale` from
   ``--level-scale DIR`` (``DIR/<case>_covariance.pt``, written by
   ``python -m manifold_nets_examples.rigid_body.level_scale --out DIR``: fitted on 400 other
-  sequences per noise level, seeds 6000 + i), applied to the same rollout.
+  sequences per noise level, seeds 6000 + i), applied to the same rollout in place of the
+  readout's own.
 
 ``--readouts DIR`` scores other readouts in place of the zoo's (``DIR/<case>_covariance.pt``,
 written by ``python -m manifold_nets_examples.rigid_body.calibration --out DIR``), in every
@@ -46,7 +49,7 @@ import torch
 from scipy.stats import chi2, norm
 
 from manifold_nets.calibration import nees, tangent_errors
-from manifold_nets.observer import CovarianceReadout
+from manifold_nets.observer import CalibratedObserver, CovarianceReadout
 from manifold_nets.threads import use_threads
 from manifold_nets.covariance_training import load_readout
 from manifold_nets_examples.rigid_body.calibration import CASES, SIGMAS, SKIP, _sim
@@ -102,14 +105,15 @@ def _case(case: str, args) -> dict:
     cal, system = zoo_readout(case)
     if args.readouts is not None:  # another readout of the same observer, in the zoo's place
         cal = load_readout(args.readouts / f"{CASES[case][2]}_covariance.pt", cal.observer)
-    cal.eval()
     scale = None
-    if args.level_scale is not None:
+    if args.level_scale is not None:  # set against the readout alone: its own level scale aside
+        cal = CalibratedObserver(cal.observer, cal.readout)
         readout_case = CASES[case][2]
         scale = load_readout(args.level_scale / f"{readout_case}_covariance.pt", cal.observer).level_scale
         if scale is None:
             raise SystemExit(f"{args.level_scale / f'{readout_case}_covariance.pt'} has no level "
                              "scale; write one with python -m manifold_nets_examples.rigid_body.level_scale.")
+    cal.eval()
     rows = {}
     for i, sigma in enumerate(args.sigmas):
         r = _read(cal, scale, system, args.test, sigma, args.seed + i)

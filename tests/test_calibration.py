@@ -140,6 +140,36 @@ def test_the_rigid_body_calibration_command_writes_its_tables_figure_and_readout
     assert not (tmp_path / "again" / "nominal_covariance.pt").exists()
 
 
+def test_the_calibration_command_scores_a_readout_with_the_level_scale_its_file_holds(tmp_path):
+    """``--readouts DIR``: a file with a level scale (the zoo's hold one) is scored with it, as
+    ``CalibratedObserver(observer, readout, level_scale)`` gives it, not as the readout alone."""
+    import json
+
+    from manifold_nets.covariance_training import save_readout
+    from manifold_nets.observer import CalibratedObserver
+    from manifold_nets_examples.rigid_body import calibration as command
+    from manifold_nets_examples.rigid_body.level_scale import zoo_readout
+
+    cal, system = zoo_readout("nominal")
+    assert cal.level_scale is not None and cal.readout.source == "residual_size"
+    rows = {}
+    for name, scale in (("with", cal.level_scale), ("alone", None)):
+        (tmp_path / name).mkdir()
+        save_readout(tmp_path / name / "nominal_covariance.pt", cal.readout,
+                     "zoo:rigid_body/nominal", scale)
+        command.main(["--out", str(tmp_path / name / "out"), "--cases", "nominal", "--sigmas",
+                      "0.3", "--eval", "3", "--length", "40", "--readouts", str(tmp_path / name)])
+        rows[name] = json.loads((tmp_path / name / "out" / "calibration.json").read_text())[
+            "cases"]["nominal"]["0.3"]
+    assert rows["with"]["ekf"] == rows["alone"]["ekf"]
+    assert rows["with"]["learned"]["R"]["anees"] != rows["alone"]["learned"]["R"]["anees"]
+    data = command._sim(system, 3, 40, 0.3, 7)
+    with torch.no_grad():
+        direct = CalibratedObserver(cal.observer, cal.readout, cal.level_scale).eval()(
+            data.measurements)
+    assert command._row(system.group, *direct, data.states) == rows["with"]["learned"]
+
+
 def test_evaluate_scores_the_covariance_of_an_estimator_that_gives_one():
     from functools import partial
 

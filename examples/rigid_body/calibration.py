@@ -29,7 +29,8 @@ Writes ``OUT/calibration.md`` (the tables), ``OUT/calibration.json`` and
 ``OUT/calibration_<case>.png`` (one sequence's attitude and position errors with the +-3 sigma
 bands of both, at sigma 0.3). The sensor-error case is scored with the nominal observer (one zoo
 entry serves both) and the nominal readout. ``--readouts DIR`` skips step 1 and scores
-``DIR/<case>_covariance.pt`` as they are (e.g. the zoo's, or readouts fitted one case a process).
+``DIR/<case>_covariance.pt`` as they are, each with its level scale when the file holds one (e.g.
+the zoo's, or readouts fitted one case a process).
 """
 
 from __future__ import annotations
@@ -198,15 +199,15 @@ def main(argv=None) -> None:
         if readout_case not in readouts and args.readouts is not None:
             # scored as they are: nothing fitted, nothing written
             path = args.readouts / f"{readout_case}_covariance.pt"
-            readouts[readout_case] = load_readout(path, observer).readout
+            loaded = load_readout(path, observer)  # the readout with its level scale, if any
+            readouts[readout_case] = (loaded.readout, loaded.level_scale)
             results["history"][readout_case] = {"loaded": str(path)}
         elif readout_case not in readouts:
             fit_obs, fit_sys = _system(*CASES[readout_case][:2])
-            readouts[readout_case], results["history"][readout_case] = _fit(fit_obs, fit_sys, args)
-            save_readout(
-                out / f"{readout_case}_covariance.pt", readouts[readout_case], f"zoo:{entry}"
-            )
-        cal = CalibratedObserver(observer, readouts[readout_case]).eval()
+            readout, results["history"][readout_case] = _fit(fit_obs, fit_sys, args)
+            readouts[readout_case] = (readout, None)
+            save_readout(out / f"{readout_case}_covariance.pt", readout, f"zoo:{entry}")
+        cal = CalibratedObserver(observer, *readouts[readout_case]).eval()
         results["cases"][case] = {}
         for sigma in args.sigmas:
             data = _sim(system, args.eval, args.length, sigma, 7)
