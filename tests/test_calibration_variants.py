@@ -32,8 +32,8 @@ def test_the_summary_counts_cells_under_each_variant_s_key(cv, tmp_path):
     assert [r["variant"] for r in rows] == ["shipped", "scaled", "other"]  # no file, no row
     first, scaled, other_row = rows
     assert first["cells"] == 3 and first["anees"] == (0.95, 1.10)  # outliers p 0.5 left out
-    assert first["at 90 %"] == 1 and (first["above shipped"], first["below shipped"]) == (0, 0)
+    assert first["at 90 %"] == 1 and (first["above reference"], first["below reference"]) == (0, 0)
     assert scaled["anees"] == (0.99, 1.0) and scaled["at 90 %"] == 2
-    assert (scaled["above shipped"], scaled["below shipped"]) == (1, 1)
-    assert other_row["cells"] == 2 and (other_row["above shipped"], other_row["below shipped"]) == (2, 0)
+    assert (scaled["above reference"], scaled["below reference"]) == (1, 1)
+    assert other_row["cells"] == 2 and (other_row["above reference"], other_row["below reference"]) == (2, 0)
     assert other_row["in band"] == (0.5, 0.85)
