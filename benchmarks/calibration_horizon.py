@@ -20,6 +20,7 @@ from pathlib import Path
 
 import torch
 
+from manifold_nets.atomic import write_text_atomic
 from manifold_nets.calibration import nees, tangent_errors
 from manifold_nets.covariance_training import load_readout
 from manifold_nets.threads import use_threads
@@ -86,9 +87,9 @@ def main(argv=None) -> None:
             lines.append(f"| {case} | {sigma} | " + " | ".join(
                 f"{a:.3f} / {b:.3f}" for a, b in zip(r["R"], r["p"])) + " |")
     text = "\n".join(lines + [""])
-    if args.write is not None:
-        args.write.with_suffix(".json").write_text(json.dumps(results, indent=1))
-        args.write.with_suffix(".md").write_text(text)
+    if args.write is not None:  # each file whole or not at all
+        write_text_atomic(args.write.with_suffix(".json"), json.dumps(results, indent=1))
+        write_text_atomic(args.write.with_suffix(".md"), text)
     print(text)
 
 
