@@ -143,15 +143,16 @@ def test_a_run_of_an_example_system_loads_with_no_import_by_hand():
 
 @pytest.mark.parametrize("name", COVARIANCES)
 def test_an_entry_s_covariance_loads_and_is_calibrated_on_fresh_data(name):
-    """The readout (docs/calibration.md) on 40 fresh sequences of the entry's own system at sigma
-    0.3: its ANEES of R and p near 1 (0.91-1.10 on these 40 x 150; 0.93-1.00 on 100 x 1000),
-    where a readout that did not follow the noise would be off by the noise level's spread
-    (0.1-0.5: 25x in variance)."""
+    """The readout (docs/calibration.md: the residuals and their log size, with a level scale)
+    on 40 fresh sequences of the entry's own system at sigma 0.3: its ANEES of R and p near 1
+    (0.92-1.12 on these 40 x 150; 0.97-1.01 on 100 x 1000), where a readout that did not follow
+    the noise would be off by the noise level's spread (0.1-0.5: 25x in variance)."""
     from manifold_nets.calibration import calibration, tangent_errors
     from manifold_nets.covariance_training import load_readout
 
     observer, system, _ = load_observer(f"zoo:{name}")
     calibrated = load_readout(zoo_path(name) / "covariance.pt", observer)
+    assert calibrated.readout.source == "residual_size" and calibrated.level_scale is not None
     assert (zoo_path(name) / "covariance.pt").stat().st_size < 2**20
     assert "covariance.pt" in (zoo_path(name) / "card.md").read_text()
     data = system.simulate(40, 150, 0.3, torch.Generator().manual_seed(321))
