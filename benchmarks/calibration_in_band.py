@@ -28,11 +28,13 @@ written by ``python -m manifold_nets_examples.rigid_body.calibration --out DIR``
 column.
 
 The scored sequences are seeds 8000 + i (``--test`` per noise level), neither the paper's sets
-(seed 1) nor the readouts' and level scales' own (1000-3004, 6000-6004)::
+(seed 1) nor the readouts' and level scales' own (1000-3004, 6000-6020)::
 
-    python -m manifold_nets_examples.rigid_body.level_scale --out outputs/level_scale
-    python benchmarks/calibration_in_band.py --level-scale outputs/level_scale \
-        --write benchmarks/results/calibration_in_band
+    python benchmarks/calibration_in_band.py --write outputs/in_band          # the zoo's, as shipped
+    python -m manifold_nets_examples.rigid_body.level_scale --out outputs/level_scale_five \
+        --sigmas 0.1 0.2 0.3 0.4 0.5 --heldout 400       # another level scale of the zoo's readouts
+    python benchmarks/calibration_in_band.py --level-scale outputs/level_scale_five \
+        --write outputs/in_band_five                       # the readouts alone, and with it
 
 About 5 minutes a case on one thread.
 """
