@@ -22,7 +22,6 @@ import torch
 
 from manifold_nets.atomic import write_text_atomic
 from manifold_nets.calibration import nees, tangent_errors
-from manifold_nets.covariance_training import load_readout
 from manifold_nets.threads import use_threads
 from manifold_nets_examples.rigid_body.calibration import CASES, SKIP, _sim
 from manifold_nets_examples.rigid_body.level_scale import zoo_readout
@@ -68,9 +67,7 @@ def main(argv=None) -> None:
     labels = [f"{a}-{min(b, args.length + 1) - 1}" for a, b in zip(args.spans[:-1], args.spans[1:])]
     results = {"command": command, "spans": labels, "cases": {}}
     for case in args.cases:
-        cal, system = zoo_readout(case)
-        if args.readouts is not None:
-            cal = load_readout(args.readouts / f"{CASES[case][2]}_covariance.pt", cal.observer)
+        cal, system = zoo_readout(case, args.readouts)
         cal.eval()
         results["cases"][case] = {
             str(sigma): spans_anees(cal, system, args.sequences, args.length, sigma, args.seed,

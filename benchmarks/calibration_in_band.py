@@ -19,7 +19,7 @@ per noise level:
   the misses from the time profile's;
 * **level scale**: the same with the readout's :class:`~manifold_nets.observer.LevelScale` from
   ``--level-scale DIR`` (``DIR/<case>_covariance.pt``, written by
-  ``python -m manifold_nets_examples.rigid_body.level_scale --out DIR``: fitted on 400 other
+  ``python -m manifold_nets_examples.rigid_body.level_scale --out DIR``: fitted on other
   sequences per noise level, seeds 6000 + i), applied to the same rollout in place of the
   readout's own.
 
@@ -104,9 +104,7 @@ def _by_span(anees_k: np.ndarray) -> np.ndarray:
 
 
 def _case(case: str, args) -> dict:
-    cal, system = zoo_readout(case)
-    if args.readouts is not None:  # another readout of the same observer, in the zoo's place
-        cal = load_readout(args.readouts / f"{CASES[case][2]}_covariance.pt", cal.observer)
+    cal, system = zoo_readout(case, args.readouts)  # --readouts: in the zoo's place
     scale = None
     if args.level_scale is not None:  # set against the readout alone: its own level scale aside
         cal = CalibratedObserver(cal.observer, cal.readout)

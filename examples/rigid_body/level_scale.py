@@ -49,12 +49,15 @@ __all__ = ["main", "zoo_readout", "CONTINUUM"]
 CONTINUUM = tuple(round(0.1 + 0.02 * i, 2) for i in range(21))
 
 
-def zoo_readout(case: str):
-    """The zoo observer of ``case`` with its shipped readout (a ``CalibratedObserver``), and the
-    system it is scored on."""
+def zoo_readout(case: str, readouts: Path | None = None):
+    """The zoo observer of ``case`` with its shipped readout (a ``CalibratedObserver``), or with
+    ``readouts/<the case's readout>_covariance.pt`` in its place, and the system it is scored
+    on."""
     entry, overrides, readout_case = CASES[case]
     observer, system = _system(entry, overrides)
-    return load_readout(zoo_path(CASES[readout_case][0]) / "covariance.pt", observer), system
+    path = (zoo_path(CASES[readout_case][0]) / "covariance.pt" if readouts is None
+            else Path(readouts) / f"{readout_case}_covariance.pt")
+    return load_readout(path, observer), system
 
 
 def _held_out(observer, system, n: int, sigmas, source: str) -> list[Sequences]:
@@ -83,9 +86,7 @@ def main(argv=None) -> None:
     report = {"command": "python -m manifold_nets_examples.rigid_body.level_scale "
               + " ".join(argv if argv is not None else sys.argv[1:]), "cases": {}}
     for case in args.cases:
-        cal, system = zoo_readout(case)
-        if args.readouts is not None:
-            cal = load_readout(args.readouts / f"{case}_covariance.pt", cal.observer)
+        cal, system = zoo_readout(case, args.readouts)
         held = _held_out(cal.observer, system, args.heldout, args.sigmas, cal.readout.source)
         scale = fit_level_scale(cal.readout, Sequences.cat(held), args.knots, args.tau,
                                 thin=args.thin)
