@@ -18,14 +18,15 @@ per noise level:
   200-500, 500-1000): upper bounds fitted on the scored set itself, to tell the level's share of
   the misses from the time profile's;
 * **level scale**: the same with the readout's :class:`~manifold_nets.observer.LevelScale` from
-  ``--level-scale DIR`` (``DIR/<case>_covariance.pt``, written by
+  ``--level-scale DIR`` (``DIR/<case>_covariance.pt`` of the case whose readout is scored,
+  :func:`~manifold_nets_examples.rigid_body.calibration.readout_case`; written by
   ``python -m manifold_nets_examples.rigid_body.level_scale --out DIR``: fitted on other
   sequences per noise level, seeds 6000 + i), applied to the same rollout in place of the
   readout's own.
 
 ``--readouts DIR`` scores other readouts in place of the zoo's (``DIR/<case>_covariance.pt``,
-written by ``python -m manifold_nets_examples.rigid_body.calibration --out DIR``), in every
-column.
+written by ``python -m manifold_nets_examples.rigid_body.calibration --out DIR``; a case without
+a file of its own there, its observer's), in every column.
 
 The scored sequences are seeds 8000 + i (``--test`` per noise level), neither the paper's sets
 (seed 1) nor the readouts' and level scales' own (1000-3004, 6000-6020)::
@@ -54,7 +55,7 @@ from manifold_nets.calibration import nees, tangent_errors
 from manifold_nets.observer import CalibratedObserver, CovarianceReadout
 from manifold_nets.threads import use_threads
 from manifold_nets.covariance_training import load_readout
-from manifold_nets_examples.rigid_body.calibration import CASES, SIGMAS, SKIP, _sim
+from manifold_nets_examples.rigid_body.calibration import CASES, SIGMAS, SKIP, _sim, readout_case
 from manifold_nets_examples.rigid_body.level_scale import zoo_readout
 
 FACTORS = ("R", "p")
@@ -108,11 +109,12 @@ def _case(case: str, args) -> dict:
     scale = None
     if args.level_scale is not None:  # set against the readout alone: its own level scale aside
         cal = CalibratedObserver(cal.observer, cal.readout)
-        readout_case = CASES[case][2]
-        scale = load_readout(args.level_scale / f"{readout_case}_covariance.pt", cal.observer).level_scale
+        # the level scale fitted over the same readout: the case's own, or its observer's
+        path = args.level_scale / f"{readout_case(case, args.readouts)}_covariance.pt"
+        scale = load_readout(path, cal.observer).level_scale
         if scale is None:
-            raise SystemExit(f"{args.level_scale / f'{readout_case}_covariance.pt'} has no level "
-                             "scale; write one with python -m manifold_nets_examples.rigid_body.level_scale.")
+            raise SystemExit(f"{path} has no level scale; write one with "
+                             "python -m manifold_nets_examples.rigid_body.level_scale.")
     cal.eval()
     rows = {}
     for i, sigma in enumerate(args.sigmas):

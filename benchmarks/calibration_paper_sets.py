@@ -1,8 +1,10 @@
 """Calibration of the rigid-body zoo readouts (and the nominal EKF) on the paper's inference sets.
 
-Runs ``mn-evaluate`` once per case: the case's zoo observer with its shipped ``covariance.pt``
-(or ``--covariance-dir``'s ``<case>_covariance.pt``, what ``manifold_nets_examples.rigid_body.
-calibration`` writes), ``eval.calibration=true``, on the experiment's inference sets (1000
+Runs ``mn-evaluate`` once per case: the case's zoo observer with the readout the zoo ships for
+the case's system (the sensor errors: the nominal entry's ``covariance_sensor.pt``), or
+``--covariance-dir``'s ``<case>_covariance.pt`` (what ``manifold_nets_examples.rigid_body.
+calibration`` writes; a case without one there, its observer's: ``manifold_nets_examples.
+rigid_body.calibration.readout_file``), ``eval.calibration=true``, on the experiment's inference sets (1000
 sequences of 1000 steps per sigma, seed 1), the EKF beside it unless ``--no-ekf``; then gathers
 the ANEES, the share of steps in the 95 % band and the share inside 3 sigma of R and p into one
 table::
@@ -32,10 +34,20 @@ CASES = {
 FIELDS = ("ANEES", "in band %", "in 3 sigma %")
 
 
+def _readout(case: str, covariance_dir: Path | None) -> str:
+    """``eval.covariance`` for the case: the file ``readout_file`` picks, the zoo's by name."""
+    from manifold_nets_examples.rigid_body.calibration import readout_file
+
+    path = readout_file(case, covariance_dir)
+    if covariance_dir is not None:
+        return str(path)
+    entry = f"zoo:rigid_body/{CASES[case][1]}"
+    return entry if path.name == "covariance.pt" else f"{entry}/{path.name}"
+
+
 def _command(case: str, out: Path, covariance_dir: Path | None, ekf: bool) -> list[str]:
     experiment, entry = CASES[case]
-    readout = (f"zoo:rigid_body/{entry}" if covariance_dir is None
-               else str(covariance_dir / f"{'nominal' if case == 'sensor' else case}_covariance.pt"))
+    readout = _readout(case, covariance_dir)
     return ["mn-evaluate", f"experiment={experiment}", f"eval.checkpoint=zoo:rigid_body/{entry}",
             f"eval.covariance={readout}", "eval.calibration=true",
             "eval.baselines=[ekf]" if ekf else "eval.baselines=[]", "eval.test_split=false",

@@ -271,7 +271,8 @@ class EvalConfig:
     calibration: bool = False
     #: A covariance readout for the learned observer: a ``covariance.pt`` file
     #: (``covariance_training.save_readout``) or a zoo entry (``zoo:rigid_body/nominal``: its
-    #: ``covariance.pt``). Needs ``calibration=true``.
+    #: ``covariance.pt``; ``zoo:rigid_body/nominal/covariance_sensor.pt``: another readout the
+    #: entry ships). Needs ``calibration=true``.
     covariance: Optional[str] = None
     #: Guard the learned observer against lock-out (``manifold_nets.observer.LockOutGuard``; an
     #: observer with ``model.measurement={type: robust}``): ``{tau: 20, floor: 0.1}`` re-acquires

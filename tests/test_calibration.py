@@ -232,3 +232,71 @@ def test_the_evaluate_command_scores_the_learned_covariance_and_refuses_it_witho
     assert refused.returncode != 0
     assert "is scored only with eval.calibration=true" in refused.stdout + refused.stderr
     assert not (tmp_path / "run2" / "results").exists()  # refused before any work
+
+
+def test_the_sensor_errors_are_scored_with_their_own_readout_where_there_is_one(tmp_path):
+    """The sensor-error system's readout: the zoo's ``covariance_sensor.pt``, a folder's
+    ``sensor_covariance.pt``; a folder without one scores the case with its observer's
+    (``nominal_covariance.pt``), as the readouts fitted per observer are scored. Fitting the case
+    fits its own readout on its own system."""
+    import json
+    import shutil
+
+    from manifold_nets.plugins import zoo_path
+    from manifold_nets_examples.rigid_body import calibration as command
+
+    zoo = zoo_path("rigid_body/nominal")
+    assert command.readout_file("sensor") == zoo / "covariance_sensor.pt"
+    assert command.readout_file("nominal") == zoo / "covariance.pt"
+    assert command.readout_case("sensor") == "sensor"
+    assert command.readout_case("outliers") == "outliers"
+    folder = tmp_path / "readouts"
+    folder.mkdir()
+    shutil.copy(zoo / "covariance.pt", folder / "nominal_covariance.pt")
+    rows = {}
+    for own in (False, True):
+        if own:
+            shutil.copy(zoo / "covariance_sensor.pt", folder / "sensor_covariance.pt")
+        assert command.readout_case("sensor", folder) == ("sensor" if own else "nominal")
+        out = tmp_path / f"out_{own}"
+        command.main(["--out", str(out), "--cases", "sensor", "--sigmas", "0.1", "--eval", "3",
+                      "--length", "30", "--readouts", str(folder)])
+        result = json.loads((out / "calibration.json").read_text())
+        want = folder / ("sensor_covariance.pt" if own else "nominal_covariance.pt")
+        assert result["history"] == {"sensor": {"loaded": str(want)}}
+        rows[own] = result["cases"]["sensor"]["0.1"]
+    assert rows[True]["ekf"] == rows[False]["ekf"]
+    assert rows[True]["learned"]["R"]["anees"] != rows[False]["learned"]["R"]["anees"]
+    command.main(["--out", str(tmp_path / "fit"), "--cases", "sensor", "--sigmas", "0.1",
+                  "--train", "2", "--eval", "2", "--length", "20", "--epochs", "1",
+                  "--heldout", "0"])
+    assert sorted(p.name for p in (tmp_path / "fit").glob("*.pt")) == ["sensor_covariance.pt"]
+
+
+@pytest.mark.parametrize("text, file", [
+    ("zoo:rigid_body/nominal", "covariance.pt"),
+    ("zoo:rigid_body/nominal/covariance_sensor.pt", "covariance_sensor.pt"),
+])
+def test_eval_covariance_names_an_entry_s_readout(text, file):
+    from omegaconf import OmegaConf
+
+    from manifold_nets.cli.learned_extras import covariance_file
+    from manifold_nets.plugins import zoo_path
+
+    cfg = OmegaConf.create({"eval": {"covariance": text}})
+    assert covariance_file(cfg) == zoo_path("rigid_body/nominal") / file
+
+
+@pytest.mark.parametrize("text, match", [
+    ("zoo:rigid_body/nominal/config.yaml", "not a readout's file name"),
+    ("zoo:rigid_body/nominal/checkpoints/last.pt", "not a readout's file name"),
+    ("zoo:rigid_body/nominal/../outliers/covariance.pt", "not an installed zoo entry"),
+    ("zoo:rigid_body/nominal/covariance_..pt", "not a readout's file name"),
+])
+def test_eval_covariance_refuses_what_is_not_an_entry_s_readout(text, match):
+    from omegaconf import OmegaConf
+
+    from manifold_nets.cli.learned_extras import covariance_file
+
+    with pytest.raises(ValueError, match=match):
+        covariance_file(OmegaConf.create({"eval": {"covariance": text}}))

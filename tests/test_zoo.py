@@ -33,9 +33,15 @@ ENTRIES = [
 ]
 
 
-COVARIANCES = [
-    "rigid_body/nominal", "rigid_body/outliers", "rigid_body/correlated", "rigid_body/bias_walk",
-]
+#: The rigid-body readouts the zoo ships: case (its system) -> the entry and the file. The nominal
+#: observer serves the sensor errors too, with a readout fitted on that system's errors.
+COVARIANCES = {
+    "nominal": ("rigid_body/nominal", "covariance.pt"),
+    "sensor": ("rigid_body/nominal", "covariance_sensor.pt"),
+    "outliers": ("rigid_body/outliers", "covariance.pt"),
+    "correlated": ("rigid_body/correlated", "covariance.pt"),
+    "bias_walk": ("rigid_body/bias_walk", "covariance.pt"),
+}
 
 
 def test_the_zoo_is_these_entries_and_at_most_eight_checkpoints_ship():
@@ -45,9 +51,10 @@ def test_the_zoo_is_these_entries_and_at_most_eight_checkpoints_ship():
     folders = ["examples", "manifold_nets", "groups", "configs", "docs", "benchmarks"]
     shipped = [p for f in folders for p in (ROOT / f).rglob("*.pt")]
     checkpoints = [p for p in shipped if p.parent.name == "checkpoints"]
-    readouts = sorted(p.parent for p in shipped if p.name == "covariance.pt")
+    readouts = sorted(p for p in shipped if p.name.startswith("covariance"))
     assert len(checkpoints) <= 8, checkpoints
-    assert readouts == sorted(zoo_path(n) for n in [*COVARIANCES, "broad/attitude"])
+    assert readouts == sorted([zoo_path(e) / f for e, f in COVARIANCES.values()]
+                              + [zoo_path("broad/attitude") / "covariance.pt"])
     assert len(shipped) == len(checkpoints) + len(readouts), shipped
 
 
@@ -141,20 +148,25 @@ def test_a_run_of_an_example_system_loads_with_no_import_by_hand():
     assert out.stdout.strip() == "MismatchedRigidBody"  # the bias walk's true system
 
 
-@pytest.mark.parametrize("name", COVARIANCES)
-def test_an_entry_s_covariance_loads_and_is_calibrated_on_fresh_data(name):
-    """The readout (docs/calibration.md: the residuals and their log size, with a level scale)
-    on 40 fresh sequences of the entry's own system at sigma 0.3: its ANEES of R and p near 1
-    (0.92-1.12 on these 40 x 150; 0.975-1.010 on 100 x 1000), where a readout that did not follow
-    the noise would be off by the noise level's spread (0.1-0.5: 25x in variance)."""
+@pytest.mark.parametrize("case", COVARIANCES)
+def test_an_entry_s_covariance_loads_and_is_calibrated_on_fresh_data(case):
+    """The readout of each system (docs/calibration.md: the residuals and their log size, with a
+    level scale), the one the calibration commands pick for it, on 40 fresh sequences of that
+    system at sigma 0.3: its ANEES of R and p near 1 (0.92-1.12 on these 40 x 150; 0.975-1.010
+    on 100 x 1000), where a readout that did not follow the noise would be off by the noise
+    level's spread (0.1-0.5: 25x in variance)."""
     from manifold_nets.calibration import calibration, tangent_errors
     from manifold_nets.covariance_training import load_readout
+    from manifold_nets_examples.rigid_body.calibration import CASES, _system, readout_file
 
-    observer, system, _ = load_observer(f"zoo:{name}")
-    calibrated = load_readout(zoo_path(name) / "covariance.pt", observer)
+    name, file = COVARIANCES[case]
+    path = zoo_path(name) / file
+    assert readout_file(case) == path and CASES[case][0] == name
+    observer, system = _system(*CASES[case][:2])
+    calibrated = load_readout(path, observer)
     assert calibrated.readout.source == "residual_size" and calibrated.level_scale is not None
-    assert (zoo_path(name) / "covariance.pt").stat().st_size < 2**20
-    assert "covariance.pt" in (zoo_path(name) / "card.md").read_text()
+    assert path.stat().st_size < 2**20
+    assert file in (zoo_path(name) / "card.md").read_text()
     data = system.simulate(40, 150, 0.3, torch.Generator().manual_seed(321))
     with torch.no_grad():
         est, cov = calibrated(data.measurements)
@@ -162,7 +174,7 @@ def test_an_entry_s_covariance_loads_and_is_calibrated_on_fresh_data(name):
     xi = tangent_errors(system.group, est[:, 10:], data.states[:, 10:])
     out = calibration(system.group, xi, cov[:, 10:])
     for factor in ("R", "p"):
-        assert 0.75 < out[factor].anees < 1.33, (name, factor, out[factor].anees)
+        assert 0.75 < out[factor].anees < 1.33, (case, factor, out[factor].anees)
 
 
 def test_the_broad_entry_s_covariance_reads_the_raw_samples_spread():

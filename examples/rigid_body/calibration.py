@@ -28,9 +28,11 @@ For each case (a zoo observer and the system it is scored on):
 Writes ``OUT/calibration.md`` (the tables), ``OUT/calibration.json`` and
 ``OUT/calibration_<case>.png`` (one sequence's attitude and position errors with the +-3 sigma
 bands of both, at sigma 0.3). The sensor-error case is scored with the nominal observer (one zoo
-entry serves both) and the nominal readout. ``--readouts DIR`` skips step 1 and scores
-``DIR/<case>_covariance.pt`` as they are, each with its level scale when the file holds one (e.g.
-the zoo's, or readouts fitted one case a process).
+entry serves both) and a readout fitted on the sensor-error system's own errors. ``--readouts
+DIR`` skips step 1 and scores ``DIR/<case>_covariance.pt`` as they are, each with its level scale
+when the file holds one (e.g. the zoo's, or readouts fitted one case a process); a case without a
+file of its own there (the sensor errors) is scored with its observer's, ``nominal_covariance.pt``
+(:func:`readout_file`).
 """
 
 from __future__ import annotations
@@ -55,14 +57,16 @@ from manifold_nets.covariance_training import (
 )
 from manifold_nets.observer import CalibratedObserver, CovarianceReadout
 from manifold_nets.observer.covariance import input_width
+from manifold_nets.plugins import zoo_path
 from manifold_nets.threads import use_threads
 
 from .ekf_estimator import RigidBodyEKF
 from .mismatch import MismatchedRigidBody
 
-__all__ = ["CASES", "main"]
+__all__ = ["CASES", "main", "readout_case", "readout_file"]
 
-#: case -> (zoo entry, system overrides of MismatchedRigidBody, the case whose readout it uses)
+#: case -> (zoo entry, system overrides of MismatchedRigidBody, the case of the entry's observer:
+#: whose readout scores the case where there is none of its own)
 CASES = {
     "nominal": ("rigid_body/nominal", None, "nominal"),
     "sensor": ("rigid_body/nominal", {"scale_factor": 0.1, "misalignment": 0.05}, "nominal"),
@@ -75,6 +79,27 @@ SKIP = 10
 #: The readouts' clock (time constants in steps): the errors' spread changes with the step while
 #: the biases converge and after, which a readout of the residuals alone cannot tell.
 CLOCK = (10.0, 50.0, 250.0, 1000.0)
+
+
+def _readout_path(case: str, readout_case: str, folder: Path | None) -> Path:
+    if folder is None:  # the zoo entry: covariance.pt is its observer's own case's
+        entry, _, observer_case = CASES[case]
+        name = "covariance.pt" if readout_case == observer_case else f"covariance_{readout_case}.pt"
+        return zoo_path(entry) / name
+    return Path(folder) / f"{readout_case}_covariance.pt"
+
+
+def readout_case(case: str, folder: Path | None = None) -> str:
+    """The case whose readout scores ``case``: the case itself where ``folder`` (without one, the
+    zoo entry) holds a readout of its own, else its observer's case (the sensor errors: nominal)."""
+    return case if _readout_path(case, case, folder).is_file() else CASES[case][2]
+
+
+def readout_file(case: str, folder: Path | None = None) -> Path:
+    """The file of the readout that scores ``case`` (:func:`readout_case`):
+    ``folder/<case>_covariance.pt``, or without a folder the zoo entry's ``covariance_<case>.pt``
+    (``covariance.pt`` for the entry's own case)."""
+    return _readout_path(case, readout_case(case, folder), folder)
 
 
 def _system(entry: str, overrides: dict | None):
@@ -192,22 +217,19 @@ def main(argv=None) -> None:
     results = {"command": "python -m manifold_nets_examples.rigid_body.calibration "
                + " ".join(argv if argv is not None else sys.argv[1:]),
                "cases": {}, "history": {}}
-    readouts = {}
     for case in args.cases:
-        entry, overrides, readout_case = CASES[case]
+        entry, overrides, _ = CASES[case]
         observer, system = _system(entry, overrides)
-        if readout_case not in readouts and args.readouts is not None:
-            # scored as they are: nothing fitted, nothing written
-            path = args.readouts / f"{readout_case}_covariance.pt"
+        if args.readouts is not None:  # scored as they are: nothing fitted, nothing written
+            path = readout_file(case, args.readouts)
             loaded = load_readout(path, observer)  # the readout with its level scale, if any
-            readouts[readout_case] = (loaded.readout, loaded.level_scale)
-            results["history"][readout_case] = {"loaded": str(path)}
-        elif readout_case not in readouts:
-            fit_obs, fit_sys = _system(*CASES[readout_case][:2])
-            readout, results["history"][readout_case] = _fit(fit_obs, fit_sys, args)
-            readouts[readout_case] = (readout, None)
-            save_readout(out / f"{readout_case}_covariance.pt", readout, f"zoo:{entry}")
-        cal = CalibratedObserver(observer, *readouts[readout_case]).eval()
+            results["history"][case] = {"loaded": str(path)}
+            print(case, "scored with", path, flush=True)
+        else:  # fitted on the case's own system
+            readout, results["history"][case] = _fit(observer, system, args)
+            save_readout(out / f"{case}_covariance.pt", readout, f"zoo:{entry}")
+            loaded = load_readout(out / f"{case}_covariance.pt", observer)
+        cal = CalibratedObserver(observer, loaded.readout, loaded.level_scale).eval()
         results["cases"][case] = {}
         for sigma in args.sigmas:
             data = _sim(system, args.eval, args.length, sigma, 7)

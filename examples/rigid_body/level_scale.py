@@ -6,17 +6,18 @@
     python benchmarks/calibration_paper_sets.py --covariance-dir outputs/level_scale --no-ekf \\
         --out outputs/calibration_paper_sets_level_scale
 
-For each readout of :data:`manifold_nets_examples.rigid_body.calibration.CASES` (nominal,
-outliers, AR(1) noise, bias walk; the sensor errors use the nominal one) the zoo observer and its
-shipped ``covariance.pt`` are rolled out over ``--heldout`` fresh sequences of 1000 steps per
+For each case of :data:`manifold_nets_examples.rigid_body.calibration.CASES` (by default nominal,
+outliers, AR(1) noise, bias walk; ``--cases sensor`` the sensor errors' own readout) the zoo
+observer and the readout that scores the case (the zoo's, or ``--readouts``'; which file:
+:func:`~manifold_nets_examples.rigid_body.calibration.readout_file`) are rolled out over ``--heldout`` fresh sequences of 1000 steps per
 noise level (seeds 6000 + i: neither the readout's training, validation and scale sequences,
 1000-3004, nor the paper's sets, seed 1; by default 100 at each of 21 levels 0.10, 0.12, ...,
 0.50: fitted on the paper's five levels alone it learns each level's correction and does harm
 between them, ``docs/calibration.md``), and a :class:`~manifold_nets.observer.LevelScale` is
 fitted to its errors there (:func:`manifold_nets.covariance_training.fit_level_scale`: ``--knots``
 points of the readout's level averaged over ``--tau`` steps, times the readout's clock; steps
-``k >= 10``). ``--readouts DIR`` fits the level scales of other readouts of the same observers
-(``DIR/<case>_covariance.pt``, written by ``python -m manifold_nets_examples.rigid_body.calibration
+``k >= 10``) on the case's own system. ``--readouts DIR`` fits the level scales of other readouts
+of the same observers (``DIR/<case>_covariance.pt``, written by ``python -m manifold_nets_examples.rigid_body.calibration
 --out DIR``) in place of the zoo's. ``OUT/<case>_covariance.pt`` is the readout with its level scale
 (:func:`~manifold_nets.covariance_training.load_readout` reads it back), ``OUT/level_scale.json``
 the held-out ANEES of ``R`` and ``p`` before and after, per noise level.
@@ -38,10 +39,9 @@ from manifold_nets.covariance_training import (
     readout_sequences,
     save_readout,
 )
-from manifold_nets.plugins import zoo_path
 from manifold_nets.threads import use_threads
 
-from .calibration import CASES, SKIP, _sim, _system
+from .calibration import CASES, SKIP, _sim, _system, readout_file
 
 __all__ = ["main", "zoo_readout", "CONTINUUM"]
 
@@ -51,13 +51,11 @@ CONTINUUM = tuple(round(0.1 + 0.02 * i, 2) for i in range(21))
 
 def zoo_readout(case: str, readouts: Path | None = None):
     """The zoo observer of ``case`` with its shipped readout (a ``CalibratedObserver``), or with
-    ``readouts/<the case's readout>_covariance.pt`` in its place, and the system it is scored
-    on."""
-    entry, overrides, readout_case = CASES[case]
+    ``readouts``' in its place (which file: :func:`~manifold_nets_examples.rigid_body.calibration.
+    readout_file`), and the system it is scored on."""
+    entry, overrides, _ = CASES[case]
     observer, system = _system(entry, overrides)
-    path = (zoo_path(CASES[readout_case][0]) / "covariance.pt" if readouts is None
-            else Path(readouts) / f"{readout_case}_covariance.pt")
-    return load_readout(path, observer), system
+    return load_readout(readout_file(case, readouts), observer), system
 
 
 def _held_out(observer, system, n: int, sigmas, source: str) -> list[Sequences]:
@@ -69,7 +67,8 @@ def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--out", required=True, help="the folder <case>_covariance.pt goes to")
     p.add_argument("--cases", nargs="+", default=["nominal", "outliers", "correlated", "bias_walk"],
-                   choices=[c for c in CASES if CASES[c][2] == c])
+                   choices=list(CASES), help="sensor: the sensor-error system's own readout "
+                   "(the zoo's covariance_sensor.pt, or --readouts' sensor_covariance.pt)")
     p.add_argument("--sigmas", nargs="+", type=float, default=list(CONTINUUM))
     p.add_argument("--heldout", type=int, default=100, help="sequences per noise level")
     p.add_argument("--knots", type=int, default=8)

@@ -4,6 +4,7 @@ make is what :mod:`manifold_nets.cli.tasks` evaluates."""
 
 from __future__ import annotations
 
+import re
 from collections.abc import Mapping
 from pathlib import Path
 
@@ -19,13 +20,22 @@ __all__ = ["check_covariance", "check_guarded_model", "check_lock_out", "covaria
 
 
 def covariance_file(cfg: DictConfig) -> Path:
-    """``eval.covariance`` as a file: a path, or a zoo entry's ``covariance.pt``."""
+    """``eval.covariance`` as a file: a path; a zoo entry, its ``covariance.pt``; or another of
+    an entry's readouts by its file name, ``zoo:rigid_body/nominal/covariance_sensor.pt``."""
     text = str(cfg.eval.covariance)
-    if text.startswith("zoo:"):
-        from manifold_nets.plugins import locate
+    if not text.startswith("zoo:"):
+        return Path(absolute(text))
+    from manifold_nets.plugins import locate
 
-        return locate(text) / "covariance.pt"
-    return Path(absolute(text))
+    entry, name = text, "covariance.pt"
+    if text.count("/") >= 2:  # <package>/<entry>/<file>
+        entry, _, name = text.rpartition("/")
+        if not re.fullmatch(r"covariance[A-Za-z0-9_-]*\.pt", name):
+            raise ValueError(
+                f"eval.covariance={text!r}: {name!r} is not a readout's file name; an entry's "
+                "readouts are covariance.pt or covariance_<system>.pt (see the entry's card.md)."
+            )
+    return locate(entry) / name
 
 
 def check_covariance(cfg: DictConfig) -> None:
