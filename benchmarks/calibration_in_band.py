@@ -33,6 +33,7 @@ The scored sequences are seeds 8000 + i (``--test`` per noise level), neither th
 
     python benchmarks/calibration_in_band.py --write outputs/in_band          # the zoo's, as shipped
     python -m manifold_nets_examples.rigid_body.level_scale --out outputs/level_scale_five \
+        --cases nominal sensor outliers correlated bias_walk \
         --sigmas 0.1 0.2 0.3 0.4 0.5 --heldout 400       # another level scale of the zoo's readouts
     python benchmarks/calibration_in_band.py --level-scale outputs/level_scale_five \
         --write outputs/in_band_five                       # the readouts alone, and with it
@@ -104,13 +105,18 @@ def _by_span(anees_k: np.ndarray) -> np.ndarray:
     return out
 
 
+def _level_scale_file(case: str, args) -> Path:
+    """``--level-scale``'s file for the case: fitted over the readout that scores it, the case's
+    own or its observer's."""
+    return args.level_scale / f"{readout_case(case, args.readouts)}_covariance.pt"
+
+
 def _case(case: str, args) -> dict:
     cal, system = zoo_readout(case, args.readouts)  # --readouts: in the zoo's place
     scale = None
     if args.level_scale is not None:  # set against the readout alone: its own level scale aside
         cal = CalibratedObserver(cal.observer, cal.readout)
-        # the level scale fitted over the same readout: the case's own, or its observer's
-        path = args.level_scale / f"{readout_case(case, args.readouts)}_covariance.pt"
+        path = _level_scale_file(case, args)
         scale = load_readout(path, cal.observer).level_scale
         if scale is None:
             raise SystemExit(f"{path} has no level scale; write one with "
@@ -167,6 +173,12 @@ def main(argv=None) -> None:
     p.add_argument("--write", type=Path, default=None, help="also write PATH.md and PATH.json")
     args = p.parse_args(argv)
     use_threads(args.threads)
+    missing = [str(_level_scale_file(c, args)) for c in args.cases
+               if args.level_scale is not None and not _level_scale_file(c, args).is_file()]
+    if missing:  # before any case is scored
+        raise SystemExit(f"--level-scale: no {', '.join(missing)}; fit them with python -m "
+                         "manifold_nets_examples.rigid_body.level_scale --out DIR --cases ... "
+                         "(the sensor errors' own readout: --cases sensor).")
     command = "python benchmarks/calibration_in_band.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
     results = {"command": command, "seed": args.seed, "test": args.test,

@@ -4,10 +4,10 @@ Runs ``mn-evaluate`` once per case: the case's zoo observer with the readout the
 the case's system (the sensor errors: the nominal entry's ``covariance_sensor.pt``), or
 ``--covariance-dir``'s ``<case>_covariance.pt`` (what ``manifold_nets_examples.rigid_body.
 calibration`` writes; a case without one there, its observer's: ``manifold_nets_examples.
-rigid_body.calibration.readout_file``), ``eval.calibration=true``, on the experiment's inference sets (1000
-sequences of 1000 steps per sigma, seed 1), the EKF beside it unless ``--no-ekf``; then gathers
-the ANEES, the share of steps in the 95 % band and the share inside 3 sigma of R and p into one
-table::
+rigid_body.calibration.readout_file``), ``eval.calibration=true``, on the experiment's
+inference sets (1000 sequences of 1000 steps per sigma, seed 1), the EKF beside it unless
+``--no-ekf``; then gathers the ANEES, the share of steps in the 95 % band and the share inside 3
+sigma of R and p into one table::
 
     python benchmarks/calibration_paper_sets.py --out outputs/calibration_paper_sets \\
         --write benchmarks/results/calibration_paper_sets

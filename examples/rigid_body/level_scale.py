@@ -9,16 +9,16 @@
 For each case of :data:`manifold_nets_examples.rigid_body.calibration.CASES` (by default nominal,
 outliers, AR(1) noise, bias walk; ``--cases sensor`` the sensor errors' own readout) the zoo
 observer and the readout that scores the case (the zoo's, or ``--readouts``'; which file:
-:func:`~manifold_nets_examples.rigid_body.calibration.readout_file`) are rolled out over ``--heldout`` fresh sequences of 1000 steps per
-noise level (seeds 6000 + i: neither the readout's training, validation and scale sequences,
+:func:`~manifold_nets_examples.rigid_body.calibration.readout_file`) are rolled out over
+``--heldout`` fresh sequences of 1000 steps per noise level (seeds 6000 + i: neither the readout's training, validation and scale sequences,
 1000-3004, nor the paper's sets, seed 1; by default 100 at each of 21 levels 0.10, 0.12, ...,
 0.50: fitted on the paper's five levels alone it learns each level's correction and does harm
 between them, ``docs/calibration.md``), and a :class:`~manifold_nets.observer.LevelScale` is
 fitted to its errors there (:func:`manifold_nets.covariance_training.fit_level_scale`: ``--knots``
 points of the readout's level averaged over ``--tau`` steps, times the readout's clock; steps
 ``k >= 10``) on the case's own system. ``--readouts DIR`` fits the level scales of other readouts
-of the same observers (``DIR/<case>_covariance.pt``, written by ``python -m manifold_nets_examples.rigid_body.calibration
---out DIR``) in place of the zoo's. ``OUT/<case>_covariance.pt`` is the readout with its level scale
+of the same observers (``DIR/<case>_covariance.pt``, written by
+``python -m manifold_nets_examples.rigid_body.calibration --out DIR``) in place of the zoo's. ``OUT/<case>_covariance.pt`` is the readout with its level scale
 (:func:`~manifold_nets.covariance_training.load_readout` reads it back), ``OUT/level_scale.json``
 the held-out ANEES of ``R`` and ``p`` before and after, per noise level.
 """
