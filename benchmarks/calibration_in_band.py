@@ -173,8 +173,8 @@ def main(argv=None) -> None:
     p.add_argument("--write", type=Path, default=None, help="also write PATH.md and PATH.json")
     args = p.parse_args(argv)
     use_threads(args.threads)
-    missing = [str(_level_scale_file(c, args)) for c in args.cases
-               if args.level_scale is not None and not _level_scale_file(c, args).is_file()]
+    files = [_level_scale_file(c, args) for c in args.cases] if args.level_scale else []
+    missing = [str(f) for f in files if not f.is_file()]
     if missing:  # before any case is scored
         raise SystemExit(f"--level-scale: no {', '.join(missing)}; fit them with python -m "
                          "manifold_nets_examples.rigid_body.level_scale --out DIR --cases ... "
