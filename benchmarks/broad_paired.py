@@ -5,24 +5,22 @@ Run by hand from the repository root (not by CI), with BROAD's ``.mat`` files wh
 file says, the three cross-validation folds' ensembles and the 6-D tables in ``docs/``::
 
     python benchmarks/broad_paired.py \\
-        --cv-runs runs/il/E_f1,runs/il/E_f2,runs/il/E_f3 \\
+        --scratch-runs runs/w_round/E_f1,runs/w_round/E_f2,runs/w_round/E_f3 \\
         --write benchmarks/results/broad_paired.md
 
-9-D: the shipped configuration (TIW9, an ensemble of seeds 3-5; each ``--cv-runs`` folder an
-ensemble folder, ``members/<name>`` run folders, one per fold of ``configs/broad/cv/``), each of
-the 15 cross-validation trials estimated by the ensemble of the fold that held it out, the 8 test
-trials by the first folder's (the zoo entry's members: fold 1 is the fixed split); the seeds'
-estimates averaged as ``broad.seeds --ensemble`` does. VQF (online, default settings) on the
-same trials. Only the 4 validation trials (fold 1) and the 8 test trials are unseen by every
-stage of these observers: the folds' runs are fine-tuned from one start (RLB9) that trained on
-the fixed split's training trials, which are folds 2 and 3's held-out trials, so the
-cross-validation rows are optimistic for the learned filter. The validation trials were not
-trained on, but they chose among configurations and among the three ensembles of the
-configuration (seeds 3-5, the lowest validation total), so only the test rows are free of
-selection. ``--scratch-runs`` (the same, each fold's ensemble trained from scratch, every stage
-on its fold's training trials alone; fold 1's is the zoo entry again) adds the 15
-cross-validation trials and all 23 with every trial unseen by the observer that scores it. 6-D: TIL6's per-trial inclination
-(mean over its three seeds) and VQF 6-D's from ``docs/real_data/loss6_{val,test}/metrics.json``
+9-D: the shipped configuration as ensembles of seeds 3-5 (each folder an ensemble folder,
+``members/<name>`` run folders, one per fold of ``configs/broad/cv/``), each of the 15
+cross-validation trials estimated by the ensemble of the fold that held it out, the 8 test trials
+by the first folder's (the zoo entry's members: fold 1 is the fixed split); the seeds' estimates
+averaged as ``broad.seeds --ensemble`` does. VQF (online, default settings) on the same trials.
+``--scratch-runs``: each fold's ensemble trained from scratch, every stage on its fold's training
+trials alone, so each of the 23 trials is unseen by the observer that scores it.
+``--cv-runs`` (the same, the folds fine-tuned from one start that trained on the fixed split's
+training trials, which are folds 2 and 3's held-out trials) adds rows that are optimistic for the
+learned filter; without ``--scratch-runs`` the test trials are its first folder's. The validation
+trials were not trained on, but they chose among configurations and among the configuration's
+ensembles, so only the test rows are free of selection. 6-D: TIL6's per-trial inclination (mean
+over its three seeds) and VQF 6-D's from ``docs/real_data/loss6_{val,test}/metrics.json``
 (TIL6's stages trained on the 11 training trials only).
 
 For each set and metric: both means, the mean of the per-trial differences (learned - VQF) with
@@ -106,19 +104,23 @@ def cross_validated(cv_runs: list[Path], data_dir: str | None) -> tuple[dict, li
     return learned, cv_trials
 
 
-def nine_d(cv_runs: list[Path], data_dir: str | None, scratch: list[Path] | None = None) -> dict:
-    """``{set: {"learned": {trial: metrics}, "vqf": {...}}}`` for ``cv``, ``test`` and, with
-    ``scratch`` (fold ensembles trained from scratch on their folds), ``scratch``."""
+def nine_d(cv_runs: list[Path] | None, data_dir: str | None,
+           scratch: list[Path] | None = None) -> dict:
+    """``{set: {"learned": {trial: metrics}, "vqf": {...}}}`` for ``test`` (by the first folder of
+    ``scratch``, else of ``cv_runs``), ``cv`` (fold ensembles fine-tuned from one start) and
+    ``scratch`` (fold ensembles trained from scratch on their folds), each where given."""
     default_dir, split = split_trials(None)
-    learned, cv_trials = cross_validated(cv_runs, data_dir)
-    vqf = _scored(vqf_9d(cv_trials), cv_trials)
     test = read_trials(data_dir or default_dir, split["test"])
-    quats = [run_estimates(m, "test", test) for m in ensemble_members(cv_runs[0])]
-    out = {"cv": {"learned": learned, "vqf": vqf},
-           "test": {"learned": _scored([ensemble(list(q)) for q in zip(*quats)], test),
+    first = (scratch or cv_runs)[0]
+    quats = [run_estimates(m, "test", test) for m in ensemble_members(first)]
+    out = {"test": {"learned": _scored([ensemble(list(q)) for q in zip(*quats)], test),
                     "vqf": _scored(vqf_9d(test), test)}}
-    if scratch:
-        out["scratch"] = {"learned": cross_validated(scratch, data_dir)[0], "vqf": vqf}
+    vqf = None
+    for name, runs in (("cv", cv_runs), ("scratch", scratch)):
+        if runs:
+            learned, cv_trials = cross_validated(runs, data_dir)
+            vqf = vqf or _scored(vqf_9d(cv_trials), cv_trials)
+            out[name] = {"learned": learned, "vqf": vqf}
     return out
 
 
@@ -150,8 +152,9 @@ def _folders(flag: str, value: str | None) -> list[Path] | None:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--cv-runs", required=True,
-                   help="one ensemble folder per fold of configs/broad/cv/, comma-separated")
+    p.add_argument("--cv-runs", default=None,
+                   help="one ensemble folder per fold of configs/broad/cv/, comma-separated: the "
+                        "folds fine-tuned from one start that saw folds 2 and 3 (optimistic rows)")
     p.add_argument("--scratch-runs", default=None,
                    help="as --cv-runs, each fold's ensemble trained from scratch on its fold's "
                         "training trials (every stage): its 15 trials are unseen")
@@ -161,20 +164,24 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     runs, scratch = (_folders(flag, value) for flag, value in (
         ("--cv-runs", args.cv_runs), ("--scratch-runs", args.scratch_runs)))
+    if not (runs or scratch):
+        p.error("give the folds' ensembles: --scratch-runs (or --cv-runs), one folder per fold")
     nine = nine_d(runs, args.data_dir, scratch)
     six = six_d(Path(args.docs))
     val = set(fold_trials(FOLDS[:1])[1][0])
+    folds = nine.get("scratch") or nine["cv"]  # fold 1 is the same entry in both
     sets = {  # (label, learned, vqf), per metric
         "9-D, 4 validation trials (fold 1), unseen": {
-            m: {k: v for k, v in nine["cv"][m].items() if k in val} for m in ("learned", "vqf")},
+            m: {k: v for k, v in folds[m].items() if k in val} for m in ("learned", "vqf")},
         "9-D, 8 test trials, unseen": nine["test"],
         "9-D, the 12 unseen (validation and test)": {
-            m: {**{k: v for k, v in nine["cv"][m].items() if k in val}, **nine["test"][m]}
+            m: {**{k: v for k, v in folds[m].items() if k in val}, **nine["test"][m]}
             for m in ("learned", "vqf")},
-        "9-D, 15 cross-validation trials (11 seen by the folds' start)": nine["cv"],
-        "9-D, all 23 (11 seen by the start)": {
-            m: {**nine["cv"][m], **nine["test"][m]} for m in ("learned", "vqf")},
     }
+    if "cv" in nine:
+        sets["9-D, 15 cross-validation trials (11 seen by the folds' start)"] = nine["cv"]
+        sets["9-D, all 23 (11 seen by the start)"] = {
+            m: {**nine["cv"][m], **nine["test"][m]} for m in ("learned", "vqf")}
     if scratch:
         sets["9-D, 15 cross-validation trials, folds from scratch, unseen"] = nine["scratch"]
         sets["9-D, all 23 unseen (folds from scratch, and test)"] = {

@@ -53,3 +53,11 @@ def test_paired_figures_follow_their_definitions(bp):
     assert r["p_sign_flip"] == pytest.approx(_brute(d))
     with pytest.raises(ValueError, match="different trials"):
         bp.paired({**learned, "99": 1.0}, ref)
+
+
+def test_it_needs_the_folds_ensembles(bp, capsys):
+    with pytest.raises(SystemExit):
+        bp.main([])
+    assert "--scratch-runs" in capsys.readouterr().err
+    with pytest.raises(SystemExit, match="one ensemble folder per fold"):
+        bp.main(["--scratch-runs", "a,b"])
