@@ -19,9 +19,14 @@ trials alone, so each of the 23 trials is unseen by the observer that scores it.
 training trials, which are folds 2 and 3's held-out trials) adds rows that are optimistic for the
 learned filter; without ``--scratch-runs`` the test trials are its first folder's. The validation
 trials were not trained on, but they chose among configurations and among the configuration's
-ensembles, so only the test rows are free of selection. 6-D: TIL6's per-trial inclination (mean
-over its three seeds) and VQF 6-D's from ``docs/real_data/loss6_{val,test}/metrics.json``
-(TIL6's stages trained on the 11 training trials only).
+ensembles, so only the test rows are free of selection. 6-D: a 6-D row's per-trial inclination
+and VQF 6-D's from the ``broad.six_d`` tables ``docs/real_data/<DIR>_{val,test}/metrics.json``,
+``--six-d DIR:ROW`` (repeatable; default ``loss6:TIL6``, TIL6's mean over its three seeds; every
+6-D row's stages trained on the 11 training trials only). With ``--six-d`` and no folds'
+ensembles only the 6-D rows are computed (no BROAD files or runs needed)::
+
+    python benchmarks/broad_paired.py --six-d loss6:TIL6 --six-d start6:Z6 \
+        --six-d "start6:Z6 (ensemble of 3)" --write benchmarks/results/broad_paired_6d.md
 
 For each set and metric: both means, the mean of the per-trial differences (learned - VQF) with
 its 95 % Student-t interval, the trials where the learned filter is lower, and the two-sided
@@ -34,6 +39,8 @@ import argparse
 import itertools
 import json
 import os
+import shlex
+import sys
 from pathlib import Path
 
 os.environ.setdefault("OMP_NUM_THREADS", "1")
@@ -124,14 +131,63 @@ def nine_d(cv_runs: list[Path] | None, data_dir: str | None,
     return out
 
 
-def six_d(root: Path) -> dict:
-    """TIL6 and VQF 6-D per-trial inclination on validation and test, from the docs' tables."""
+def six_d(root: Path, table: str = "loss6", row: str = "TIL6") -> dict:
+    """The 6-D ``row``'s and VQF 6-D's per-trial inclination on validation and test, from the
+    docs' tables ``root/<table>_{val,test}/metrics.json``."""
     out = {}
     for name in ("val", "test"):
-        table = json.loads((root / f"loss6_{name}" / "metrics.json").read_text())["inclination"]
-        out[name] = {m: {k: v for k, v in table[src].items() if k[:2].isdigit()}
-                     for m, src in (("learned", "TIL6"), ("vqf", "vqf_6d"))}
+        path = root / f"{table}_{name}" / "metrics.json"
+        rows = json.loads(path.read_text())["inclination"]
+        if row not in rows:
+            raise SystemExit(f"error: --six-d {table}:{row}: {path} has no row {row!r}; it has "
+                             f"{sorted(rows)}.")
+        out[name] = {m: {k: v for k, v in rows[src].items() if k[:2].isdigit()}
+                     for m, src in (("learned", row), ("vqf", "vqf_6d"))}
     return out
+
+
+def _six_d_sets(root: Path, items: list[str]) -> dict:
+    """``{label: {"inclination": paired}}`` for each ``DIR:ROW`` of ``items``: its validation
+    trials, its test trials and both."""
+    out = {}
+    for item in items:
+        table, sep, row = item.partition(":")
+        if not (sep and table and row):
+            raise SystemExit(f"error: --six-d takes DIR:ROW (e.g. loss6:TIL6), got {item!r}.")
+        six = six_d(root, table, row)
+        six["both"] = {m: {**six["val"][m], **six["test"][m]} for m in ("learned", "vqf")}
+        for name, what in (("val", "{} validation trials, unseen"),
+                           ("test", "{} test trials, unseen"), ("both", "the {} unseen")):
+            d = six[name]
+            what = what.format(len(d["vqf"]))
+            out[f"6-D {row}, {what}"] = {"inclination": paired(d["learned"], d["vqf"])}
+    return out
+
+
+def _nine_d_sets(runs, scratch, data_dir) -> dict:
+    """``{label: {metric: paired}}`` of the 9-D sets (module docstring)."""
+    nine = nine_d(runs, data_dir, scratch)
+    val = set(fold_trials(FOLDS[:1])[1][0])
+    folds = nine.get("scratch") or nine["cv"]  # fold 1 is the same entry in both
+    sets = {  # (label, learned, vqf), per metric
+        "9-D, 4 validation trials (fold 1), unseen": {
+            m: {k: v for k, v in folds[m].items() if k in val} for m in ("learned", "vqf")},
+        "9-D, 8 test trials, unseen": nine["test"],
+        "9-D, the 12 unseen (validation and test)": {
+            m: {**{k: v for k, v in folds[m].items() if k in val}, **nine["test"][m]}
+            for m in ("learned", "vqf")},
+    }
+    if "cv" in nine:
+        sets["9-D, 15 cross-validation trials (11 seen by the folds' start)"] = nine["cv"]
+        sets["9-D, all 23 (11 seen by the start)"] = {
+            m: {**nine["cv"][m], **nine["test"][m]} for m in ("learned", "vqf")}
+    if scratch:
+        sets["9-D, 15 cross-validation trials, folds from scratch, unseen"] = nine["scratch"]
+        sets["9-D, all 23 unseen (folds from scratch, and test)"] = {
+            m: {**nine["scratch"][m], **nine["test"][m]} for m in ("learned", "vqf")}
+    return {label: {m: paired({k: v[m] for k, v in d["learned"].items()},
+                              {k: v[m] for k, v in d["vqf"].items()}) for m in METRICS}
+            for label, d in sets.items()}
 
 
 def _row(label: str, metric: str, r: dict) -> str:
@@ -160,40 +216,19 @@ def main(argv=None) -> None:
                         "training trials (every stage): its 15 trials are unseen")
     p.add_argument("--data-dir", default=None)
     p.add_argument("--docs", default="docs/real_data", help="where the 6-D tables are")
+    p.add_argument("--six-d", action="append", default=None, metavar="DIR:ROW",
+                   help="a 6-D row of the broad.six_d tables DOCS/DIR_{val,test} (repeatable; "
+                        "default loss6:TIL6); alone, without the folds' ensembles: 6-D rows only")
     p.add_argument("--write", default=None, help="a .md path; the .json beside it")
     args = p.parse_args(argv)
     runs, scratch = (_folders(flag, value) for flag, value in (
         ("--cv-runs", args.cv_runs), ("--scratch-runs", args.scratch_runs)))
-    if not (runs or scratch):
-        p.error("give the folds' ensembles: --scratch-runs (or --cv-runs), one folder per fold")
-    nine = nine_d(runs, args.data_dir, scratch)
-    six = six_d(Path(args.docs))
-    val = set(fold_trials(FOLDS[:1])[1][0])
-    folds = nine.get("scratch") or nine["cv"]  # fold 1 is the same entry in both
-    sets = {  # (label, learned, vqf), per metric
-        "9-D, 4 validation trials (fold 1), unseen": {
-            m: {k: v for k, v in folds[m].items() if k in val} for m in ("learned", "vqf")},
-        "9-D, 8 test trials, unseen": nine["test"],
-        "9-D, the 12 unseen (validation and test)": {
-            m: {**{k: v for k, v in folds[m].items() if k in val}, **nine["test"][m]}
-            for m in ("learned", "vqf")},
-    }
-    if "cv" in nine:
-        sets["9-D, 15 cross-validation trials (11 seen by the folds' start)"] = nine["cv"]
-        sets["9-D, all 23 (11 seen by the start)"] = {
-            m: {**nine["cv"][m], **nine["test"][m]} for m in ("learned", "vqf")}
-    if scratch:
-        sets["9-D, 15 cross-validation trials, folds from scratch, unseen"] = nine["scratch"]
-        sets["9-D, all 23 unseen (folds from scratch, and test)"] = {
-            m: {**nine["scratch"][m], **nine["test"][m]} for m in ("learned", "vqf")}
-    result = {label: {m: paired({k: v[m] for k, v in d["learned"].items()},
-                                {k: v[m] for k, v in d["vqf"].items()}) for m in METRICS}
-              for label, d in sets.items()}
-    for name, label in (("val", "6-D TIL6, 4 validation trials, unseen"),
-                        ("test", "6-D TIL6, 8 test trials, unseen"), ("both", "6-D TIL6, the 12 unseen")):
-        d = six[name] if name != "both" else {m: {**six["val"][m], **six["test"][m]}
-                                              for m in ("learned", "vqf")}
-        result[label] = {"inclination": paired(d["learned"], d["vqf"])}
+    if not (runs or scratch or args.six_d):
+        p.error("give the folds' ensembles: --scratch-runs (or --cv-runs), one folder per fold "
+                "(or --six-d DIR:ROW alone for the 6-D rows)")
+    six = _six_d_sets(Path(args.docs), args.six_d or ["loss6:TIL6"])
+    result = _nine_d_sets(runs, scratch, args.data_dir) if (runs or scratch) else {}
+    result.update(six)
     lines = ["# BROAD: the learned filter against VQF, paired over trials", "",
              "Difference: learned - VQF (deg, mean over trials) with its 95 % Student-t interval; "
              "p: the exact two-sided sign-flip test of a zero mean difference. \"Unseen\": no "
@@ -203,8 +238,8 @@ def main(argv=None) -> None:
              "| p |", "|---|---|---|---|---|---|---|---|"]
     for label, ms in result.items():
         lines += [_row(label, m, r) for m, r in ms.items()]
-    lines += ["", "Command: `python benchmarks/broad_paired.py " + " ".join(
-        argv if argv is not None else __import__("sys").argv[1:]) + "`", "", ATTRIBUTION, ""]
+    lines += ["", "Command: `python benchmarks/broad_paired.py " + shlex.join(
+        argv if argv is not None else sys.argv[1:]) + "`", "", ATTRIBUTION, ""]
     text = "\n".join(lines)
     print(text)
     if args.write:

@@ -61,3 +61,33 @@ def test_it_needs_the_folds_ensembles(bp, capsys):
     assert "--scratch-runs" in capsys.readouterr().err
     with pytest.raises(SystemExit, match="one ensemble folder per fold"):
         bp.main(["--scratch-runs", "a,b"])
+
+
+def test_the_6d_rows_alone_read_the_six_d_tables(bp, tmp_path, capsys):
+    import json
+
+    rng = np.random.default_rng(1)
+    for split, names in (("val", ["09", "14"]), ("test", ["02", "05", "07"])):
+        rows = {m: {n: float(x) for n, x in zip(names, rng.uniform(0.3, 1.0, len(names)))}
+                for m in ("vqf_6d", "A")}
+        rows = {m: {**r, "mean": float(np.mean(list(r.values())))} for m, r in rows.items()}
+        (tmp_path / f"t6_{split}").mkdir()
+        (tmp_path / f"t6_{split}" / "metrics.json").write_text(json.dumps({"inclination": rows}))
+        if split == "test":
+            test = rows
+    out = tmp_path / "paired.md"
+    bp.main(["--docs", str(tmp_path), "--six-d", "t6:A", "--write", str(out)])
+    got = json.loads(out.with_suffix(".json").read_text())
+    assert list(got) == ["6-D A, 2 validation trials, unseen", "6-D A, 3 test trials, unseen",
+                         "6-D A, the 5 unseen"]
+    want = bp.paired({n: test["A"][n] for n in ("02", "05", "07")},
+                     {n: test["vqf_6d"][n] for n in ("02", "05", "07")})
+    r = got["6-D A, 3 test trials, unseen"]["inclination"]
+    assert r["ci95"] == pytest.approx(want.pop("ci95"))
+    assert {k: r[k] for k in want} == pytest.approx(want)
+    assert got["6-D A, the 5 unseen"]["inclination"]["trials"] == 5
+    assert "--six-d t6:A" in out.read_text()
+    with pytest.raises(SystemExit, match="has no row 'B'"):
+        bp.main(["--docs", str(tmp_path), "--six-d", "t6:B"])
+    with pytest.raises(SystemExit, match="DIR:ROW"):
+        bp.main(["--docs", str(tmp_path), "--six-d", "t6"])

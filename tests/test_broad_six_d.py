@@ -222,6 +222,22 @@ def test_the_cascade_keeps_the_6d_inclination_and_takes_the_9d_heading(trial):
     np.testing.assert_allclose(np.abs(six_d.cascade(q9, q9)), np.abs(q9), atol=1e-12)
 
 
+def test_the_6d_ensemble_averages_inclinations_whatever_the_headings(trial):
+    from manifold_nets_examples.broad.seeds import ensemble
+
+    q_ref = trial.quat[trial.known][:500]
+    rng = np.random.default_rng(4)
+    tilt = G.exp(torch.from_numpy(rng.normal(0, 0.02, (500, 3)) * [1, 1, 0])).numpy()
+    back = np.transpose(tilt, (0, 2, 1))  # the opposite tilt about the same horizontal axis
+    a = _turn_about_up(quat_multiply(matrix_to_quat(tilt), q_ref), rng.uniform(-3, 3, 500))
+    b = _turn_about_up(quat_multiply(matrix_to_quat(back), q_ref), rng.uniform(-3, 3, 500))
+    got = six_d.tilt_ensemble([a, b])
+    e_a, e = (np.abs(errors(x, q_ref)["inclination"]) for x in (a, got))
+    assert e_a.mean() > 0.01 and e.max() < 1e-3 * e_a.max()  # radians: the tilts cancel
+    np.testing.assert_allclose(errors(got, a)["heading"], 0, atol=1e-6)  # the first's heading
+    assert np.abs(errors(ensemble([a, b]), q_ref)["inclination"]).max() > 0.02  # unaligned: no
+
+
 def test_the_6d_reference_rows_track_the_excerpt(trial):
     pytest.importorskip("vqf")
     from manifold_nets_examples.broad.reference import riann_6d, vqf_6d
@@ -358,12 +374,14 @@ def test_the_six_d_command_writes_the_rows_and_the_cascade(six_d_runs):
     out = tmp / "table"
     r6, r9 = str(tmp / "r6"), str(tmp / "r9")
     six_d.main(["--split", "test", "--config", str(split), "--out", str(out),
-                "--learned", f"six={r6},{r6}", "--cascade", f"both={r6}+{r9}"])  # fmt: skip
+                "--learned", f"six={r6},{r6}", "--cascade", f"both={r6}+{r9}",
+                "--ensemble"])  # fmt: skip
     metrics = json.loads((out / "metrics.json").read_text())
     rows = metrics["inclination"]
     assert {"vqf_6d", "vqf_9d", "six"} <= set(rows)
     assert rows["six"]["std_over_runs"] == 0.0  # the same run twice
     assert math.isclose(rows["six"]["mean"], rows[f"six [{r6}]"]["mean"])
+    assert math.isclose(rows["six (ensemble of 2)"]["mean"], rows["six"]["mean"], rel_tol=1e-9)
     both = {r["trial"]: r for r in metrics["cascades"] if r["method"] == "both"}
     assert math.isclose(both["te"]["inclination"], rows["six"]["te"], rel_tol=1e-9)
     assert "### 6-D" in (out / "table.md").read_text()

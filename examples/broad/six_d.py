@@ -10,7 +10,8 @@ an arbitrary heading costs nothing). Rows: VQF 6-D (``vqf_6d``), RIANN (``riann`
 for context (``vqf_9d``), and each ``--learned`` 6-D observer (run folders of
 ``broad.train --magnetometer 0``, started from the tilt of the first sample). A comma-separated
 list of runs (seeds) gives one row per run and a row ``LABEL`` with, per trial, the mean over
-the runs, and in ``metrics.json`` the spread (sample std) of the runs' means.
+the runs, and in ``metrics.json`` the spread (sample std) of the runs' means. ``--ensemble`` adds
+a row ``LABEL (ensemble of N)``: the runs' estimates joined into one (:func:`tilt_ensemble`).
 
 A *cascade* (``--cascade``) is a 9-D filter made of two learned observers: the inclination of
 a 6-D one (which no magnetic disturbance can tilt) and the heading of a 9-D one, joined as VQF
@@ -38,7 +39,7 @@ from .compare import ATTRIBUTION, comparison, markdown_table
 from .data import Trial, read_trials, split_trials
 from .metric import quat_conj, quat_multiply, rmse
 
-__all__ = ["cascade", "learned_quaternions", "inclination_rows", "main"]
+__all__ = ["cascade", "tilt_ensemble", "learned_quaternions", "inclination_rows", "main"]
 
 
 def cascade(q6: np.ndarray, q9: np.ndarray) -> np.ndarray:
@@ -49,6 +50,16 @@ def cascade(q6: np.ndarray, q9: np.ndarray) -> np.ndarray:
     half = np.arctan2(e[:, 3], e[:, 0])
     qz = np.stack((np.cos(half), 0 * half, 0 * half, np.sin(half)), axis=1)
     return quat_multiply(qz, q6)
+
+
+def tilt_ensemble(estimates: list[np.ndarray]) -> np.ndarray:
+    """``(T, 4)``: the seed ensemble of 6-D estimates ``[(T, 4)]``. Each 6-D observer's heading is
+    its own (unobservable), so every estimate is first given the first one's heading
+    (:func:`cascade`), keeping its inclination; the chordal mean of these
+    (:func:`.seeds.ensemble`) then averages the inclinations alone."""
+    from .seeds import ensemble
+
+    return ensemble([cascade(q, estimates[0]) for q in estimates])
 
 
 def learned_quaternions(run, trials: list[Trial]) -> list[np.ndarray]:
@@ -130,7 +141,8 @@ def _references(trials: list[Trial]) -> tuple[dict, dict]:
     return est, secs
 
 
-def run(split: str, out, learned: dict, cascades: dict, config=None, data_dir=None) -> dict:
+def run(split: str, out, learned: dict, cascades: dict, config=None, data_dir=None,
+        with_ensemble: bool = False) -> dict:
     """Scores the rows of the module docstring on ``split``; writes ``out/table.md`` and
     ``out/metrics.json``; returns the metrics."""
     default_dir, splits = split_trials(config)
@@ -157,6 +169,10 @@ def run(split: str, out, learned: dict, cascades: dict, config=None, data_dir=No
     for label, runs in learned.items():
         if len(runs) > 1:
             _with_mean(rows, label, [f"{label} [{r}]" for r in runs], names)
+        if with_ensemble and len(runs) > 1:
+            key = f"{label} (ensemble of {len(runs)})"
+            joined_q = [tilt_ensemble([quats(r)[i] for r in runs]) for i in range(len(trials))]
+            rows.update(inclination_rows(trials, {key: joined_q}))
     joined = {}
     for label, (runs6, runs9) in cascades.items():
         runs9 = runs9 * len(runs6) if len(runs9) == 1 else runs9
@@ -184,13 +200,15 @@ def main(argv=None) -> None:
     p.add_argument("--learned", action="append", default=[], metavar="LABEL=RUN[,RUN...]")
     p.add_argument("--cascade", action="append", default=[],
                    metavar="LABEL=RUN6[,RUN6...]+RUN9[,RUN9...]")
+    p.add_argument("--ensemble", action="store_true",
+                   help="add each multi-run row's seed ensemble (headings aligned)")
     p.add_argument("--threads", type=int, default=None)
     a = p.parse_args(argv)
     try:
         use_threads(a.threads)
         learned = _groups(a.learned, "--learned")
         cascades = _groups(a.cascade, "--cascade", pair=True)
-        run(a.split, a.out, learned, cascades, a.config, a.data_dir)
+        run(a.split, a.out, learned, cascades, a.config, a.data_dir, a.ensemble)
         print((Path(a.out) / "table.md").read_text())
     except (ValueError, OSError) as err:
         raise SystemExit(f"error: {err}") from None
