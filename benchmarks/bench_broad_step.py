@@ -3,6 +3,8 @@
 Run by hand from the repository root (not by CI)::
 
     python benchmarks/bench_broad_step.py --write          # writes results/broad_step.md
+    python benchmarks/bench_broad_step.py --run zoo:broad/attitude_6d \
+        --write benchmarks/results/broad_step_6d.md       # the 6-D entry
     python benchmarks/bench_broad_step.py --samples 4000 --rounds 2   # a quick look
 
 Each filter is fed a test trial's readings (07, fast rotation) one sample at a time from a
@@ -52,6 +54,7 @@ import torch  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
+DEFAULT_RUN, DEFAULT_OUT = "zoo:broad/attitude", str(RESULTS / "broad_step.md")
 TRIAL = "07_undisturbed_fast_rotation_B"
 
 
@@ -337,8 +340,10 @@ def markdown(times, n, rate, args) -> str:
         "# BROAD: per-sample cost of the online filters, one CPU thread",
         "",
         f"`python benchmarks/bench_broad_step.py --samples {args.samples} --rounds {args.rounds}"
+        + (f" --run {args.run}" if args.run != DEFAULT_RUN else "")
         + (f" --prefiltered-run {args.prefiltered_run}" if args.prefiltered_run else "")
-        + (" --no-aoti" if args.compiled is None else "") + " --write`; "
+        + (" --no-aoti" if args.compiled is None else "")
+        + (" --write" if args.write == DEFAULT_OUT else f" --write {args.write}") + "`; "
         f"trial {TRIAL[:2]}, its first {n} samples ({rate:.1f} Hz: a real-time budget of "
         f"{1e6 / rate:.0f} us per sample); median over {args.rounds} rounds (one warm-up not "
         "counted), rows interleaved in a shuffled order each round; torch "
@@ -359,12 +364,13 @@ def markdown(times, n, rate, args) -> str:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--run", default="zoo:broad/attitude", help="the learned observer")
+    p.add_argument("--run", default=DEFAULT_RUN, help="the learned observer")
     p.add_argument("--prefiltered-run", default=None, help="a broad.train run with --acc-lowpass")
     p.add_argument("--samples", type=int, default=20000)
     p.add_argument("--rounds", type=int, default=3)
     p.add_argument("--data-dir", default=None)
-    p.add_argument("--write", action="store_true", help="write results/broad_step.md")
+    p.add_argument("--write", nargs="?", const=DEFAULT_OUT, default=None, metavar="PATH",
+                   help="write the table (default path: benchmarks/results/broad_step.md)")
     p.add_argument("--no-aoti", action="store_true",
                    help="leave out the rows of the step compiled by AOTInductor (needs a C++ "
                         "compiler)")
@@ -390,7 +396,7 @@ def main(argv=None) -> None:
                     "\n" for r, d in agree.items())
     print(text)
     if args.write:
-        (RESULTS / "broad_step.md").write_text(text)
+        Path(args.write).write_text(text)
 
 
 if __name__ == "__main__":

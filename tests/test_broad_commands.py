@@ -84,6 +84,32 @@ def test_apply_estimates_a_recording_without_reference(tmp_path, capsys):
     assert np.array_equal(np.load(tmp_path / "own.npy"), np.load(tmp_path / "full.npy"))
 
 
+def test_apply_with_the_6d_entry_reads_no_magnetometer_and_scores_the_inclination(tmp_path, capsys):
+    raw = _raw()
+    apply_cmd.main(["zoo:broad/attitude_6d", str(FIXTURE), "--out", str(tmp_path / "q.npy")])
+    printed = capsys.readouterr().out
+    assert "inclination" in printed and "heading is free and not scored" in printed
+    assert "total" not in printed
+    scrambled = {**raw, "imu_mag": np.random.default_rng(0).normal(0, 50, raw["imu_mag"].shape)}
+    apply_cmd.main(["zoo:broad/attitude_6d", str(_save(tmp_path / "m.mat", scrambled)),
+                    "--out", str(tmp_path / "m.npy")])  # fmt: skip
+    assert np.array_equal(np.load(tmp_path / "q.npy"), np.load(tmp_path / "m.npy"))
+    no_mag = _save(tmp_path / "n.mat", {k: v for k, v in raw.items() if k != "imu_mag"})
+    apply_cmd.main(["zoo:broad/attitude_6d", str(no_mag), "--out", str(tmp_path / "n.npy")])
+    assert np.array_equal(np.load(tmp_path / "q.npy"), np.load(tmp_path / "n.npy"))
+    broken = _save(tmp_path / "b.mat", {**raw, "imu_mag": np.full(raw["imu_mag"].shape, np.nan)})
+    apply_cmd.main(["zoo:broad/attitude_6d", str(broken), "--out", str(tmp_path / "b.npy")])
+    assert np.array_equal(np.load(tmp_path / "q.npy"), np.load(tmp_path / "b.npy"))  # never read
+    with pytest.raises(SystemExit, match="imu_mag.*is missing"):  # a 9-D observer needs it
+        apply_cmd.main(["zoo:broad/attitude", str(no_mag), "--out", str(tmp_path / "n9.npy")])
+    assert not (tmp_path / "n9.npy").exists()
+    apply_cmd.main(["zoo:broad/attitude", str(FIXTURE), "--out", str(tmp_path / "q9.npy")])
+    apply_cmd.main(["zoo:broad/attitude", str(tmp_path / "m.mat"), "--out", str(tmp_path / "m9.npy")])
+    assert not np.allclose(np.load(tmp_path / "q9.npy"), np.load(tmp_path / "m9.npy"))  # 9-D reads it
+    got = rmse(np.load(tmp_path / "q.npy"), read_trial(FIXTURE).quat, read_trial(FIXTURE).movement)
+    assert got["inclination"] < 3.0  # degrees (2.49 measured), 7 s from a tilt start on trial 01
+
+
 def test_apply_writes_the_covariance_of_each_step_when_asked(tmp_path, capsys):
     """--covariance: the zoo entry's readout at every observer step, the sample each belongs to,
     the quaternions unchanged; what estimate_with_covariance gives in Python."""

@@ -387,6 +387,17 @@ def test_the_six_d_command_writes_the_rows_and_the_cascade(six_d_runs):
     assert "### 6-D" in (out / "table.md").read_text()
     with pytest.raises(SystemExit, match="LABEL=RUN6"):
         six_d.main(["--out", str(out), "--cascade", f"x={r6}"])
+    with pytest.raises(SystemExit, match="broad/attitude_6d"):  # the installed entries, listed
+        six_d.main(["--out", str(out), "--learned", "x=zoo:broad/nope"])
+
+
+def test_the_six_d_command_scores_the_6d_zoo_entry(six_d_runs):
+    pytest.importorskip("vqf")
+    tmp, split = six_d_runs
+    six_d.main(["--split", "test", "--config", str(split), "--out", str(tmp / "zoo6"),
+                "--learned", "entry=zoo:broad/attitude_6d"])  # fmt: skip
+    rows = json.loads((tmp / "zoo6" / "metrics.json").read_text())["inclination"]
+    assert 0 < rows["entry"]["mean"] < 3.0  # degrees on the excerpt (2.49 measured)
 
 
 def test_the_seed_ensemble_is_the_mean_rotation_whatever_the_signs():

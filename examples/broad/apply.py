@@ -7,9 +7,12 @@
         --covariance p.npz              # and the covariance of each step's attitude error
 
 ``trial.mat`` needs only ``imu_gyr``, ``imu_acc``, ``imu_mag`` and ``sampling_rate`` as
-BROAD's files hold them: a recording of one's own IMU has no optical reference. Where the file
+BROAD's files hold them (a 6-D observer's, no ``imu_mag``): a recording of one's own IMU has no
+optical reference. Where the file
 has ``opt_quat`` (and ``movement``), the benchmark's RMSE over its movement samples (every
-sample with a reference when ``movement`` is absent) is printed. The file is read as
+sample with a reference when ``movement`` is absent) is printed: for a 6-D observer
+(``zoo:broad/attitude_6d``, trained with ``--magnetometer 0``), which reads no magnetometer and
+whose heading is therefore free, the inclination alone. The file is read as
 :func:`.data.read_trial` reads any trial from outside (its header checked before any data, at
 most :data:`.data.MAX_SAMPLES` samples). The observer is a run folder of :mod:`.train` or a
 checkpoint, loaded by :func:`manifold_nets.load_observer`, which executes nothing a file names.
@@ -44,7 +47,13 @@ from manifold_nets.threads import use_threads
 
 from . import simulator  # noqa: F401  (registers BroadSimulator for load_observer)
 from .data import read_trial
-from .evaluate import decimation, observer_quaternions, quaternions_from, readings_batch
+from .evaluate import (
+    decimation,
+    input_settings,
+    observer_quaternions,
+    quaternions_from,
+    readings_batch,
+)
 from .metric import rmse
 
 __all__ = ["apply_observer", "write_quaternions", "write_covariances"]
@@ -93,15 +102,16 @@ def apply_observer(observer_path, mat_file, out: Path | None = None,
                    covariance: Path | None = None, readout=None) -> dict:
     """Estimates ``mat_file`` with the observer at ``observer_path``; writes ``out`` when given,
     and the covariances to ``covariance`` (module docstring). Returns ``{"quaternions": (T, 4),
-    "rmse": {...} or None, "scored": samples scored, "movement_in_file": bool}`` (and
-    ``"covariance"``, ``"sample"`` when asked)."""
+    "rmse": {...} or None, "scored": samples scored, "movement_in_file": bool, "magnetometer":
+    whether the observer reads one}`` (and ``"covariance"``, ``"sample"`` when asked)."""
     if out is not None:  # before any work
         out = check_destination(out, suffixes=FORMATS)
     if covariance is not None:
         covariance = check_destination(covariance, suffixes=(".npz",), option="--covariance")
         folder, readout = _readout_of(observer_path, readout)
-    trial = read_trial(mat_file, reference=False)
     observer, system, _ = load_observer(observer_path)
+    reads_mag = input_settings(system)["magnetometer"]
+    trial = read_trial(mat_file, reference=False, magnetometer=reads_mag)
     k = decimation(system, trial.rate)  # the observer's step must be whole samples
     extra = {}
     if covariance is None:
@@ -127,6 +137,7 @@ def apply_observer(observer_path, mat_file, out: Path | None = None,
         "rmse": rmse(quats, trial.quat, trial.movement) if scored else None,
         "scored": scored,
         "movement_in_file": trial.movement_in_file,
+        "magnetometer": reads_mag,
         **extra,
     }
 
@@ -159,6 +170,10 @@ def main(argv=None) -> None:
     r = res["rmse"]
     over = ("movement samples with a reference" if res["movement_in_file"]
             else "samples with a reference (the file has no movement)")  # fmt: skip
+    if not res["magnetometer"]:
+        print(f"RMSE over the {res['scored']} {over}: inclination {r['inclination']:.3f} deg (a "
+              "6-D observer reads no magnetometer: its heading is free and not scored)")
+        return
     print(f"RMSE over the {res['scored']} {over}: total {r['total']:.3f} deg, heading "
           f"{r['heading']:.3f} deg, inclination {r['inclination']:.3f} deg")
 

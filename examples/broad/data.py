@@ -17,7 +17,8 @@ Each refusal is a :class:`BroadFormatError` naming the file, the field and the f
 arrays are accepted: object, struct, cell and function arrays are refused, nothing from a file
 is executed. With ``reference=False`` (a recording of one's own IMU, for :mod:`.apply`)
 ``opt_quat`` and ``movement`` may be absent: the trial then has no reference (NaN rows), or
-without ``movement`` every sample with a reference counts.
+without ``movement`` every sample with a reference counts. With ``magnetometer=False`` (for a 6-D
+observer, which reads none) ``imu_mag`` is neither needed nor read: the trial's ``mag`` is zeros.
 
 :func:`trials_to_dataset` makes a :class:`~manifold_nets.data.TrajectoryDataset` on
 ``SO3()``: for samples ``0..T-1`` the states are ``x_k = R(quat_k)`` ``(N, L+1, 3, 3)``,
@@ -194,14 +195,13 @@ def _check_rate(path, raw: dict) -> float:
     return float(rate.reshape(-1)[0])
 
 
-def _load(path: Path, reference: bool) -> dict:
+def _load(path: Path, reference: bool, magnetometer: bool = True) -> dict:
     """The fields of a trial that ``path`` holds, their header checked before any is read."""
     try:
         check_regular_file(path)
         header = variables(path)
-        fields = [*_VECTORS, "sampling_rate"] + [
-            f for f in _REFERENCE if reference or f in header
-        ]
+        vectors = [f for f in _VECTORS if magnetometer or f != "imu_mag"]
+        fields = [*vectors, "sampling_rate"] + [f for f in _REFERENCE if reference or f in header]
         _check_header(path, header, fields)
         return read_variables(path, header, fields)
     except MatFileError as err:
@@ -227,15 +227,17 @@ def _check_readings(path, arrays: dict) -> None:
             )
 
 
-def read_trial(path: str | Path, reference: bool = True) -> Trial:
+def read_trial(path: str | Path, reference: bool = True, magnetometer: bool = True) -> Trial:
     """The checked :class:`Trial` in ``path``; :class:`BroadFormatError` if anything is off.
 
-    ``reference=False``: ``opt_quat`` and ``movement`` may be missing (see the module
-    docstring); where present they are checked as always."""
+    ``reference=False``: ``opt_quat`` and ``movement`` may be missing (where present they are
+    checked as always); ``magnetometer=False``: ``imu_mag`` is not read, ``mag`` is zeros (see
+    the module docstring)."""
     path = Path(path)
-    raw = _load(path, reference)
-    arrays = {f: _shaped(path, _numeric(path, raw, f), f, 3) for f in _VECTORS}
+    raw = _load(path, reference, magnetometer)
+    arrays = {f: _shaped(path, _numeric(path, raw, f), f, 3) for f in _VECTORS if f in raw}
     t = len(arrays["imu_gyr"])
+    arrays.setdefault("imu_mag", np.zeros((t, 3)))
     quat = (_shaped(path, _numeric(path, raw, "opt_quat"), "opt_quat", 4) if "opt_quat" in raw
             else np.full((t, 4), np.nan))  # fmt: skip
     movement = (_shaped(path, _numeric(path, raw, "movement"), "movement", None)

@@ -8,7 +8,8 @@ inclination alone (:mod:`.metric`: it does not change when the world is turned a
 an arbitrary heading costs nothing). Rows: VQF 6-D (``vqf_6d``), RIANN (``riann``, where the
 ``riann`` package is installed; otherwise the row is left out and the command says so), VQF 9-D
 for context (``vqf_9d``), and each ``--learned`` 6-D observer (run folders of
-``broad.train --magnetometer 0``, started from the tilt of the first sample). A comma-separated
+``broad.train --magnetometer 0``, started from the tilt of the first sample, or a zoo entry,
+``zoo:broad/attitude_6d``). A comma-separated
 list of runs (seeds) gives one row per run and a row ``LABEL`` with, per trial, the mean over
 the runs, and in ``metrics.json`` the spread (sample std) of the runs' means. ``--ensemble`` adds
 a row ``LABEL (ensemble of N)``: the runs' estimates joined into one (:func:`tilt_ensemble`).
@@ -33,6 +34,7 @@ import numpy as np
 
 from manifold_nets.atomic import write_text_atomic
 from manifold_nets.destination import check_destination
+from manifold_nets.plugins import locate
 from manifold_nets.threads import use_threads
 
 from .compare import ATTRIBUTION, comparison, markdown_table
@@ -93,7 +95,7 @@ def _groups(items: list[str], option: str, pair: bool = False) -> dict:
             raise ValueError(f"{option} takes {want}, got {item!r}.")
         lists = [[r for r in p.split(",") if r] for p in parts]
         for r in (r for lst in lists for r in lst):
-            if not Path(r).exists() and not (pair and r == "vqf_6d"):
+            if not locate(r).exists() and not (pair and r == "vqf_6d"):  # zoo:... raises
                 raise ValueError(f"{option} {label}: no such run folder {r!r}.")
         if pair and len(lists[1]) not in (1, len(lists[0])):
             raise ValueError(f"{option} {label}: give one 9-D run or one per 6-D run.")
