@@ -58,8 +58,18 @@ def _expect(tmp_path, raw, *needles):
 
 def test_missing_key(tmp_path):
     raw = _raw()
+    del raw["imu_acc"]
+    _expect(tmp_path, raw, "'imu_acc' is missing", "original BROAD trial file")
+
+
+def test_missing_magnetometer_names_the_6d_observer_which_needs_none(tmp_path):
+    raw = _raw()
     del raw["imu_mag"]
-    _expect(tmp_path, raw, "'imu_mag' is missing", "original BROAD trial file")
+    _expect(tmp_path, raw, "'imu_mag' is missing", "zoo:broad/attitude_6d")
+    scipy.io.savemat(str(tmp_path / "six.mat"), raw)
+    trial = read_trial(tmp_path / "six.mat", magnetometer=False)
+    assert np.array_equal(trial.mag, np.zeros((len(trial), 3)))
+    assert np.array_equal(trial.acc, read_trial(FIXTURE).acc)
 
 
 def test_wrong_shape(tmp_path):

@@ -201,6 +201,12 @@ def _load(path: Path, reference: bool, magnetometer: bool = True) -> dict:
         check_regular_file(path)
         header = variables(path)
         vectors = [f for f in _VECTORS if magnetometer or f != "imu_mag"]
+        if "imu_mag" in vectors and "imu_mag" not in header and "imu_gyr" in header:
+            raise _fail(
+                path, "imu_mag", "is missing, and a 9-D observer reads the magnetometer",
+                "store the magnetometer's readings (uT), or, for an IMU without one, use a 6-D "
+                "observer (zoo:broad/attitude_6d, or one trained with --magnetometer 0)",
+            )
         fields = [*vectors, "sampling_rate"] + [f for f in _REFERENCE if reference or f in header]
         _check_header(path, header, fields)
         return read_variables(path, header, fields)
