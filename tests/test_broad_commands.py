@@ -110,6 +110,30 @@ def test_apply_with_the_6d_entry_reads_no_magnetometer_and_scores_the_inclinatio
     assert got["inclination"] < 3.0  # degrees (2.49 measured), 7 s from a tilt start on trial 01
 
 
+def test_apply_joins_the_6d_inclination_with_a_9d_heading(tmp_path, capsys):
+    from manifold_nets_examples.broad.metric import errors
+    from manifold_nets_examples.broad.six_d import cascade
+
+    q = {}
+    for name, extra in (("six", []), ("nine", []), ("both", ["--heading-from", "zoo:broad/attitude"])):
+        entry = "zoo:broad/attitude" if name == "nine" else "zoo:broad/attitude_6d"
+        apply_cmd.main([entry, str(FIXTURE), "--out", str(tmp_path / f"{name}.npy"), *extra])
+        q[name] = np.load(tmp_path / f"{name}.npy")
+    assert "total" in capsys.readouterr().out.splitlines()[-1]  # the cascade is scored in full
+    np.testing.assert_array_equal(q["both"], cascade(q["six"], q["nine"]))
+    e = {k: errors(v, read_trial(FIXTURE).quat) for k, v in q.items()}
+    np.testing.assert_allclose(e["both"]["inclination"], e["six"]["inclination"], atol=1e-7)
+    for bad, match in (
+        (["zoo:broad/attitude", "--heading-from", "zoo:broad/attitude"], "reads a magnetometer"),
+        (["zoo:broad/attitude_6d", "--heading-from", "zoo:broad/attitude_6d"], "no heading"),
+        (["zoo:broad/attitude_6d", "--heading-from", "zoo:broad/attitude", "--covariance",
+          str(tmp_path / "p.npz")], "--covariance is one observer's"),
+    ):
+        with pytest.raises(SystemExit, match=match):
+            apply_cmd.main([bad[0], str(FIXTURE), "--out", str(tmp_path / "x.npy"), *bad[1:]])
+        assert not (tmp_path / "x.npy").exists() and not (tmp_path / "p.npz").exists()
+
+
 def test_apply_writes_the_covariance_of_each_step_when_asked(tmp_path, capsys):
     """--covariance: the zoo entry's readout at every observer step, the sample each belongs to,
     the quaternions unchanged; what estimate_with_covariance gives in Python."""

@@ -5,6 +5,8 @@
     python -m manifold_nets_examples.broad.apply zoo:broad/attitude trial.mat --out q.csv
     python -m manifold_nets_examples.broad.apply zoo:broad/attitude trial.mat --out q.csv \
         --covariance p.npz              # and the covariance of each step's attitude error
+    python -m manifold_nets_examples.broad.apply zoo:broad/attitude_6d trial.mat --out q.csv \
+        --heading-from zoo:broad/attitude   # the 6-D inclination under the 9-D heading
 
 ``trial.mat`` needs only ``imu_gyr``, ``imu_acc``, ``imu_mag`` and ``sampling_rate`` as
 BROAD's files hold them (a 6-D observer's, no ``imu_mag``): a recording of one's own IMU has no
@@ -30,6 +32,11 @@ nothing is written. Errors end the command with ``error: ...`` and exit status 1
 sample each belongs to (every ``k``-th; between them the quaternions are the gyroscope's
 integration from the last step). One rollout of the observer with its readout gives the
 quaternions and the covariances (the readout reads the run, it does not change it).
+
+``--heading-from OBSERVER9`` joins a 6-D observer's inclination (the first argument) with a 9-D
+observer's heading, as VQF joins its 6-D estimate and its heading correction
+(:func:`.six_d.cascade`): a magnetic disturbance then cannot tilt the estimate. With the zoo's
+two BROAD entries it is the lowest inclination on BROAD's test trials (``docs/real_data.md``).
 """
 
 from __future__ import annotations
@@ -98,24 +105,50 @@ def _readout_of(observer_path, readout) -> tuple[Path, Path]:
     return folder, Path(readout) if readout is not None else folder / "covariance.pt"
 
 
+def _heading_observer(heading_from, reads_mag: bool, observer_path):
+    """The 9-D observer of ``--heading-from``, checked against the first (which must be 6-D)."""
+    if reads_mag:
+        raise ValueError(f"--heading-from joins a 6-D observer's inclination with a 9-D "
+                         f"observer's heading, but {observer_path} reads a magnetometer; give "
+                         "a 6-D one first (zoo:broad/attitude_6d).")
+    loaded = load_observer(heading_from)
+    if not input_settings(loaded.system)["magnetometer"]:
+        raise ValueError(f"--heading-from {heading_from} reads no magnetometer, so it has no "
+                         "heading to give; give a 9-D observer (zoo:broad/attitude).")
+    return loaded
+
+
 def apply_observer(observer_path, mat_file, out: Path | None = None,
-                   covariance: Path | None = None, readout=None) -> dict:
+                   covariance: Path | None = None, readout=None, heading_from=None) -> dict:
     """Estimates ``mat_file`` with the observer at ``observer_path``; writes ``out`` when given,
-    and the covariances to ``covariance`` (module docstring). Returns ``{"quaternions": (T, 4),
-    "rmse": {...} or None, "scored": samples scored, "movement_in_file": bool, "magnetometer":
-    whether the observer reads one}`` (and ``"covariance"``, ``"sample"`` when asked)."""
+    and the covariances to ``covariance`` (module docstring). With ``heading_from`` (a 9-D
+    observer; ``observer_path`` then a 6-D one) the estimate is the cascade of the first's
+    inclination and the second's heading (:func:`.six_d.cascade`). Returns ``{"quaternions":
+    (T, 4), "rmse": {...} or None, "scored": samples scored, "movement_in_file": bool,
+    "magnetometer": whether the estimate reads one}`` (and ``"covariance"``, ``"sample"`` when
+    asked)."""
     if out is not None:  # before any work
         out = check_destination(out, suffixes=FORMATS)
+    if covariance is not None and heading_from is not None:
+        raise ValueError("--covariance is one observer's; leave out --heading-from or "
+                         "--covariance.")
     if covariance is not None:
         covariance = check_destination(covariance, suffixes=(".npz",), option="--covariance")
         folder, readout = _readout_of(observer_path, readout)
     observer, system, _ = load_observer(observer_path)
     reads_mag = input_settings(system)["magnetometer"]
-    trial = read_trial(mat_file, reference=False, magnetometer=reads_mag)
+    nine = None if heading_from is None else _heading_observer(heading_from, reads_mag,
+                                                                observer_path)
+    trial = read_trial(mat_file, reference=False, magnetometer=reads_mag or nine is not None)
     k = decimation(system, trial.rate)  # the observer's step must be whole samples
     extra = {}
     if covariance is None:
         quats = observer_quaternions(observer, system, [trial], source=str(observer_path))[0]
+        if nine is not None:
+            from .six_d import cascade
+
+            q9 = observer_quaternions(nine.observer, nine.system, [trial], str(heading_from))[0]
+            quats, reads_mag = cascade(quats, q9), True
     else:  # one rollout gives both: the readout reads the observer's run, it does not move it
         from .calibration import estimate_with_covariance
 
@@ -151,13 +184,18 @@ def main(argv=None) -> None:
                    help="also write each step's attitude covariance here (.npz)")
     p.add_argument("--readout", default=None,
                    help="the covariance readout (default: covariance.pt in the observer's folder)")
+    p.add_argument("--heading-from", default=None, metavar="OBSERVER9",
+                   help="a 9-D observer whose heading joins the (6-D) observer's inclination "
+                        "(zoo:broad/attitude_6d with zoo:broad/attitude: the lowest inclination "
+                        "with a magnetometer, docs/real_data.md)")
     p.add_argument("--threads", type=int, default=None,
                    help="torch threads (default: one, or OMP_NUM_THREADS)")
     args = p.parse_args(argv)
     try:
         use_threads(args.threads)
         res = apply_observer(args.observer, args.mat_file, Path(args.out),
-                             None if args.covariance is None else Path(args.covariance), args.readout)
+                             None if args.covariance is None else Path(args.covariance), args.readout,
+                             args.heading_from)
     except (ValueError, OSError) as err:
         raise SystemExit(f"error: {err}") from None
     print(f"{len(res['quaternions'])} quaternions (w, x, y, z) -> {args.out}")
