@@ -106,6 +106,11 @@ def test_apply_with_the_6d_entry_reads_no_magnetometer_and_scores_the_inclinatio
     apply_cmd.main(["zoo:broad/attitude", str(FIXTURE), "--out", str(tmp_path / "q9.npy")])
     apply_cmd.main(["zoo:broad/attitude", str(tmp_path / "m.mat"), "--out", str(tmp_path / "m9.npy")])
     assert not np.allclose(np.load(tmp_path / "q9.npy"), np.load(tmp_path / "m9.npy"))  # 9-D reads it
+    with pytest.raises(SystemExit, match="6-D observer, whose heading is free"):  # any readout
+        apply_cmd.main(["zoo:broad/attitude_6d", str(FIXTURE), "--out", str(tmp_path / "c.npy"),
+                        "--covariance", str(tmp_path / "c.npz"), "--readout",
+                        str(zoo_path("broad/attitude") / "covariance.pt")])  # fmt: skip
+    assert not (tmp_path / "c.npy").exists() and not (tmp_path / "c.npz").exists()
     got = rmse(np.load(tmp_path / "q.npy"), read_trial(FIXTURE).quat, read_trial(FIXTURE).movement)
     assert got["inclination"] < 3.0  # degrees (2.49 measured), 7 s from a tilt start on trial 01
 

@@ -137,6 +137,10 @@ def apply_observer(observer_path, mat_file, out: Path | None = None,
         folder, readout = _readout_of(observer_path, readout)
     observer, system, _ = load_observer(observer_path)
     reads_mag = input_settings(system)["magnetometer"]
+    if covariance is not None and not reads_mag:
+        raise ValueError(f"--covariance: {observer_path} is a 6-D observer, whose heading is free; "
+                         "a covariance of the 3-D attitude error cannot describe it, and no "
+                         "readout is fitted for one. Leave out --covariance.")
     nine = None if heading_from is None else _heading_observer(heading_from, reads_mag,
                                                                 observer_path)
     trial = read_trial(mat_file, reference=False, magnetometer=reads_mag or nine is not None)
