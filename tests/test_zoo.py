@@ -207,3 +207,21 @@ def test_the_broad_entry_s_covariance_widens_under_a_vibration():
     # recording's: this readout widens through the readings, its context barely moves it
     # (docs/calibration.md, On real data)
     assert float(np.median((trace_shaken / trace).numpy())) > 1.1
+
+
+def test_the_6d_entry_behind_its_filter_ignores_the_magnetometer_columns():
+    """broad/attitude_6d's deployed form (``.filtered()``, what ``export_observer`` exports)
+    takes six columns of ``y`` and zeroes the magnetometer's: anything there gives the same
+    estimates, bit for bit; the accelerometer's columns do move them."""
+    filtered = load_observer("zoo:broad/attitude_6d").filtered()
+    g = torch.Generator().manual_seed(0)
+    y = torch.randn(2, 40, 6, generator=g, dtype=torch.float64) * 0.1
+    y[..., 2] += 1.0
+    u = torch.randn(2, 40, 3, generator=g, dtype=torch.float64) * 0.1
+    other_mag, other_acc = y.clone(), y.clone()
+    other_mag[..., 3:] = torch.randn(2, 40, 3, generator=g, dtype=torch.float64)
+    other_acc[..., :3] += 0.2
+    with torch.no_grad():
+        base = filtered(y, u)
+        assert torch.equal(filtered(other_mag, u), base)
+        assert not torch.allclose(filtered(other_acc, u), base)
