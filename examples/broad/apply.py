@@ -143,7 +143,8 @@ def apply_observer(observer_path, mat_file, out: Path | None = None,
                          "readout is fitted for one. Leave out --covariance.")
     nine = None if heading_from is None else _heading_observer(heading_from, reads_mag,
                                                                 observer_path)
-    trial = read_trial(mat_file, reference=False, magnetometer=reads_mag or nine is not None)
+    with_heading = reads_mag or nine is not None  # the estimate's heading means something
+    trial = read_trial(mat_file, reference=False, magnetometer=with_heading)
     k = decimation(system, trial.rate)  # the observer's step must be whole samples
     extra = {}
     if covariance is None:
@@ -152,7 +153,7 @@ def apply_observer(observer_path, mat_file, out: Path | None = None,
             from .six_d import cascade
 
             q9 = observer_quaternions(nine.observer, nine.system, [trial], str(heading_from))[0]
-            quats, reads_mag = cascade(quats, q9), True
+            quats = cascade(quats, q9)
     else:  # one rollout gives both: the readout reads the observer's run, it does not move it
         from .calibration import estimate_with_covariance
 
@@ -174,7 +175,7 @@ def apply_observer(observer_path, mat_file, out: Path | None = None,
         "rmse": rmse(quats, trial.quat, trial.movement) if scored else None,
         "scored": scored,
         "movement_in_file": trial.movement_in_file,
-        "magnetometer": reads_mag,
+        "magnetometer": with_heading,
         **extra,
     }
 

@@ -74,6 +74,10 @@ _VECTORS = {"imu_gyr": "rad/s", "imu_acc": "m/s^2", "imu_mag": "uT"}
 _WIDTHS = {"imu_gyr": 3, "imu_acc": 3, "imu_mag": 3, "opt_quat": 4, "movement": 1,
            "sampling_rate": None}  # fmt: skip
 _REFERENCE = ("opt_quat", "movement")
+#: The fix a missing field's error names, where it is not the default one (an original file).
+_MISSING_FIX = {"imu_mag": "store the magnetometer's readings (uT), or, for an IMU without one, "
+                           "use a 6-D observer (zoo:broad/attitude_6d, or one trained with "
+                           "--magnetometer 0), which reads none"}
 _QUAT_TOL = 1e-3
 
 
@@ -127,8 +131,8 @@ def _check_header(path, header: dict, fields) -> None:
             raise _fail(
                 path, field, f"is missing (the file has {sorted(header)[:20]}"
                 f"{' and more' if len(header) > 20 else ''})",
-                "use an original BROAD trial file from https://github.com/dlaidig/broad "
-                "(data_mat/), or store the field",
+                _MISSING_FIX.get(field, "use an original BROAD trial file from "
+                                 "https://github.com/dlaidig/broad (data_mat/), or store the field"),
             )
         shape, cls = header[field].shape, header[field].cls
         if cls not in NUMERIC_CLASSES:
@@ -201,12 +205,6 @@ def _load(path: Path, reference: bool, magnetometer: bool = True) -> dict:
         check_regular_file(path)
         header = variables(path)
         vectors = [f for f in _VECTORS if magnetometer or f != "imu_mag"]
-        if "imu_mag" in vectors and "imu_mag" not in header and "imu_gyr" in header:
-            raise _fail(
-                path, "imu_mag", "is missing, and a 9-D observer reads the magnetometer",
-                "store the magnetometer's readings (uT), or, for an IMU without one, use a 6-D "
-                "observer (zoo:broad/attitude_6d, or one trained with --magnetometer 0)",
-            )
         fields = [*vectors, "sampling_rate"] + [f for f in _REFERENCE if reference or f in header]
         _check_header(path, header, fields)
         return read_variables(path, header, fields)
