@@ -6,7 +6,9 @@ own command is in it) and, per variant, reports over its cells (a case, a factor
 the range of the ANEES, the range of the share of steps in the 95 % band, how many cells reach
 the goal's 90 %, and in how many the share in band is above / below the first variant's (the
 residual readouts) on the same sets. ``outliers p 0.5`` is left out of every count: one of its
-1000 sequences loses its position (``docs/calibration.md``), which no readout repairs::
+1000 sequences loses its position (``docs/calibration.md``), which no readout repairs. A variant
+may join parts of several files (``(file, key, cases)``: only those cases of that file), as the
+zoo's rows do, whose sensor errors are scored by their own readout::
 
     python benchmarks/calibration_variants.py --write benchmarks/results/calibration_variants
 
@@ -38,33 +40,68 @@ FIVE = {
     "log-size readouts (the five levels)": ("calibration_in_band_size_readouts", ""),
     "log-size readouts + level scale fitted at the five levels": (
         "calibration_in_band_size_readouts_level_scale", "level scale"),
-    "**log-size readouts + level scale fitted on 0.10-0.50 (the zoo's)**": (
+    "log-size readouts + level scale fitted on 0.10-0.50": (
         "calibration_in_band_size_readouts_continuous", "level scale"),
 }
-#: the same variants between the levels: each file's ``_between`` twin (``--seed 9000``)
-BETWEEN = {label: (name.replace("calibration_in_band", "calibration_in_band_between", 1), key)
-           for label, (name, key) in FIVE.items()}
+#: the zoo's readouts with level scales fitted on three ranges, the sensor errors scored by their
+#: own readout (``covariance_sensor.pt``) as the zoo scores them
+_RIGID = ("nominal", "outliers", "correlated", "bias_walk")
+ZOO = {
+    "the zoo's readouts + level scale fitted on 0.10-0.50": [
+        ("calibration_in_band_size_readouts_continuous", "level scale", _RIGID),
+        ("calibration_in_band_sensor_readout", "level scale", ("sensor",))],
+    "the zoo's readouts + level scale fitted on 0.06-0.60": [
+        ("calibration_in_band_size_readouts_extended", "level scale", None)],
+    "**the zoo's readouts + level scale fitted on 0.10-0.60 (the zoo's)**": [
+        ("calibration_in_band_size_readouts_upper", "level scale", None)],
+}
+FIVE |= ZOO
+
+
+def _between(spec):
+    """A variant's ``_between`` twin (``--seed 9000``: the same files' names after
+    ``calibration_in_band_between``; the sensor errors are not scored between the levels)."""
+    twin = lambda name: name.replace("calibration_in_band", "calibration_in_band_between", 1)  # noqa: E731
+    if isinstance(spec, tuple):
+        return twin(spec[0]), spec[1]
+    return [(twin(name), key, cases) for name, key, cases in spec if cases != ("sensor",)]
+
+
+#: the same variants between the levels
+BETWEEN = {label: _between(spec) for label, spec in FIVE.items()}
 EXCLUDED = {("outliers", "p 0.5")}
 
 
-def cells(path: Path, key: str) -> dict[tuple[str, str], tuple[float, float]]:
-    """(case, "factor sigma") -> (ANEES, share in band) of one result file, under ``key``."""
-    cases = json.loads(path.read_text())["cases"]
+def cells(path: Path, key: str, cases=None) -> dict[tuple[str, str], tuple[float, float]]:
+    """(case, "factor sigma") -> (ANEES, share in band) of one result file, under ``key``
+    (only ``cases``, when given)."""
+    found = json.loads(path.read_text())["cases"]
     anees, share = (f"{key} anees", key) if key else ("anees", "in band")
-    return {(case, cell): (r[anees], r[share]) for case, rows in cases.items()
+    return {(case, cell): (r[anees], r[share]) for case, rows in found.items()
+            if cases is None or case in cases
             for cell, r in rows.items() if (case, cell) not in EXCLUDED and share in r}
+
+
+def _variant_cells(spec, results: Path):
+    """``(file label, cells)`` of a variant (``(file, key)`` or a list of ``(file, key,
+    cases)``), or ``None`` when a file is missing."""
+    parts = [(spec[0], spec[1], None)] if isinstance(spec, tuple) else spec
+    if not all((results / f"{name}.json").exists() for name, _, _ in parts):
+        return None
+    got = {}
+    for name, key, cases in parts:
+        got |= cells(results / f"{name}.json", key, cases)
+    return " + ".join(name for name, _, _ in parts), got
 
 
 def summary(variants: dict, results: Path) -> list[dict]:
     """One row per variant whose result file exists, compared with the first variant's cells."""
     rows, reference = [], None
-    for label, (name, key) in variants.items():
-        path = results / f"{name}.json"
-        if not path.exists():
+    for label, spec in variants.items():
+        found = _variant_cells(spec, results)
+        if found is None or not found[1]:
             continue
-        got = cells(path, key)
-        if not got:
-            continue
+        name, got = found
         if reference is None:
             reference = got
         anees = [a for a, _ in got.values()]
@@ -103,7 +140,8 @@ def main(argv=None) -> None:
          "`python benchmarks/calibration_variants.py --write benchmarks/results/calibration_variants`",
          "", "Fresh sequences of 1000 steps, 1000 per noise level; a cell is a case, a factor "
          "(`R`, `p`) and a noise level; `outliers p 0.5` is left out (one sequence loses its "
-         "position). The nominal readout serves the sensor errors too.", ""]
+         "position). The nominal readout serves the sensor errors in every variant but the "
+         "zoo's rows (the last three), which score them with their own readout.", ""]
         + _table("At the paper's five noise levels (seeds 8000 + i)", five)
         + _table("Between them: sigma 0.15, 0.25, 0.35, 0.45 (seeds 9000 + i; nominal, "
                  "outliers, AR(1) noise)", between))

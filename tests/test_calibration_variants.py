@@ -37,3 +37,20 @@ def test_the_summary_counts_cells_under_each_variant_s_key(cv, tmp_path):
     assert (scaled["above reference"], scaled["below reference"]) == (1, 1)
     assert other_row["cells"] == 2 and (other_row["above reference"], other_row["below reference"]) == (2, 0)
     assert other_row["in band"] == (0.5, 0.85)
+
+
+def test_a_variant_joins_the_cases_it_names_from_several_files(cv, tmp_path):
+    """The zoo's rows: the rigid-body cases from one file, the sensor errors from another (their
+    own readout); a part whose file is missing drops the whole row, and the between-levels twin
+    leaves the sensor errors' part out."""
+    a = {"nominal": {"R 0.1": _row(1.0, 0.95)}, "sensor": {"R 0.1": _row(1.2, 0.10)}}
+    b = {"sensor": {"R 0.1": _row(1.01, 0.92)}, "nominal": {"R 0.1": _row(2.0, 0.0)}}
+    (tmp_path / "a.json").write_text(json.dumps({"command": "x", "cases": a}))
+    (tmp_path / "b.json").write_text(json.dumps({"command": "y", "cases": b}))
+    spec = [("a", "", ("nominal",)), ("b", "", ("sensor",))]
+    rows = cv.summary({"joined": spec, "half": [("a", "", None), ("c", "", None)]}, tmp_path)
+    assert [r["variant"] for r in rows] == ["joined"]
+    assert rows[0]["cells"] == 2 and rows[0]["anees"] == (1.0, 1.01) and rows[0]["at 90 %"] == 2
+    assert rows[0]["file"] == "a + b"
+    assert cv._between(spec) == [("a", "", ("nominal",))]  # no "calibration_in_band" to rename
+    assert cv._between(("calibration_in_band_x", "k")) == ("calibration_in_band_between_x", "k")

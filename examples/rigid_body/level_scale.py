@@ -11,9 +11,10 @@ outliers, AR(1) noise, bias walk; ``--cases sensor`` the sensor errors' own read
 observer and the readout that scores the case (the zoo's, or ``--readouts``'; which file:
 :func:`~manifold_nets_examples.rigid_body.calibration.readout_file`) are rolled out over
 ``--heldout`` fresh sequences of 1000 steps per noise level (seeds 6000 + i: neither the readout's training, validation and scale sequences,
-1000-3004, nor the paper's sets, seed 1; by default 100 at each of 21 levels 0.10, 0.12, ...,
-0.50: fitted on the paper's five levels alone it learns each level's correction and does harm
-between them, ``docs/calibration.md``), and a :class:`~manifold_nets.observer.LevelScale` is
+1000-3004, nor the paper's sets, seed 1; by default 100 at each of 26 levels 0.10, 0.12, ...,
+0.60: fitted on the paper's five levels alone it learns each level's correction and does harm
+between them, and fitted up to 0.50 alone it is pulled toward the middle at 0.5,
+``docs/calibration.md``), and a :class:`~manifold_nets.observer.LevelScale` is
 fitted to its errors there (:func:`manifold_nets.covariance_training.fit_level_scale`: ``--knots``
 points of the readout's level averaged over ``--tau`` steps, times the readout's clock; steps
 ``k >= 10``) on the case's own system. ``--readouts DIR`` fits the level scales of other readouts
@@ -45,8 +46,9 @@ from .calibration import CASES, SKIP, _sim, _system, readout_file
 
 __all__ = ["main", "zoo_readout", "CONTINUUM"]
 
-#: The noise levels the level scales are fitted on by default: a continuum over the paper's range.
-CONTINUUM = tuple(round(0.1 + 0.02 * i, 2) for i in range(21))
+#: The noise levels the level scales are fitted on by default: a continuum over the paper's range
+#: and beyond its top (0.10 ... 0.60), so that 0.5 is not the fitted range's edge.
+CONTINUUM = tuple(round(0.1 + 0.02 * i, 2) for i in range(26))
 
 
 def zoo_readout(case: str, readouts: Path | None = None):
