@@ -58,13 +58,16 @@ ZOO = {
 FIVE |= ZOO
 
 
+def _twin(name: str) -> str:
+    return name.replace("calibration_in_band", "calibration_in_band_between", 1)
+
+
 def _between(spec):
     """A variant's ``_between`` twin (``--seed 9000``: the same files' names after
     ``calibration_in_band_between``; the sensor errors are not scored between the levels)."""
-    twin = lambda name: name.replace("calibration_in_band", "calibration_in_band_between", 1)  # noqa: E731
     if isinstance(spec, tuple):
-        return twin(spec[0]), spec[1]
-    return [(twin(name), key, cases) for name, key, cases in spec if cases != ("sensor",)]
+        return _twin(spec[0]), spec[1]
+    return [(_twin(name), key, cases) for name, key, cases in spec if cases != ("sensor",)]
 
 
 #: the same variants between the levels
