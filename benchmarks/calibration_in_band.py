@@ -29,7 +29,7 @@ written by ``python -m manifold_nets_examples.rigid_body.calibration --out DIR``
 a file of its own there, its observer's), in every column.
 
 The scored sequences are seeds 8000 + i (``--test`` per noise level), neither the paper's sets
-(seed 1) nor the readouts' and level scales' own (1000-3004, 6000-6027)::
+(seed 1) nor the readouts' and level scales' own (1000-3027, 6000-6027)::
 
     python benchmarks/calibration_in_band.py --write outputs/in_band          # the zoo's, as shipped
     python -m manifold_nets_examples.rigid_body.level_scale --out outputs/level_scale_five \

@@ -8,7 +8,7 @@ the goal's 90 %, and in how many the share in band is above / below the first va
 residual readouts) on the same sets. ``outliers p 0.5`` is left out of every count: one of its
 1000 sequences loses its position (``docs/calibration.md``), which no readout repairs. A variant
 may join parts of several files (``(file, key, cases)``: only those cases of that file), as the
-zoo's rows do, whose sensor errors are scored by their own readout::
+first row scored with the sensor errors' own readout does::
 
     python benchmarks/calibration_variants.py --write benchmarks/results/calibration_variants
 
@@ -43,17 +43,23 @@ FIVE = {
     "log-size readouts + level scale fitted on 0.10-0.50": (
         "calibration_in_band_size_readouts_continuous", "level scale"),
 }
-#: the zoo's readouts with level scales fitted on three ranges, the sensor errors scored by their
-#: own readout (``covariance_sensor.pt``) as the zoo scores them
+#: readouts with their level scales, the sensor errors scored by their own readout (fitted on
+#: that system, as the zoo's ``covariance_sensor.pt`` is): the five-level log-size readouts with
+#: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 (the zoo's)
 _RIGID = ("nominal", "outliers", "correlated", "bias_walk")
 ZOO = {
-    "the zoo's readouts + level scale fitted on 0.10-0.50": [
+    "log-size readouts + level scale fitted on 0.10-0.50, own sensor readout": [
         ("calibration_in_band_size_readouts_continuous", "level scale", _RIGID),
         ("calibration_in_band_sensor_readout", "level scale", ("sensor",))],
-    "the zoo's readouts + level scale fitted on 0.06-0.60": [
+    "log-size readouts + level scale fitted on 0.06-0.60, own sensor readout": [
         ("calibration_in_band_size_readouts_extended", "level scale", None)],
-    "**the zoo's readouts + level scale fitted on 0.10-0.60 (the zoo's)**": [
+    "log-size readouts + level scale fitted on 0.10-0.60, own sensor readout": [
         ("calibration_in_band_size_readouts_upper", "level scale", None)],
+    "log-size readouts fitted on 0.06-0.60": [("calibration_in_band_wide_size_readouts", "", None)],
+    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.10-0.60": [
+        ("calibration_in_band_wide_size_readouts_upper", "level scale", None)],
+    "**log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60 (the zoo's)**": [
+        ("calibration_in_band_wide_size_readouts", "level scale", None)],
 }
 FIVE |= ZOO
 
@@ -144,7 +150,8 @@ def main(argv=None) -> None:
          "", "Fresh sequences of 1000 steps, 1000 per noise level; a cell is a case, a factor "
          "(`R`, `p`) and a noise level; `outliers p 0.5` is left out (one sequence loses its "
          "position). The nominal readout serves the sensor errors in every variant but the "
-         "zoo's rows (the last three), which score them with their own readout.", ""]
+         "last six, which score them with a readout of their own, fitted on that system as "
+         "the zoo's `covariance_sensor.pt` is.", ""]
         + _table("At the paper's five noise levels (seeds 8000 + i)", five)
         + _table("Between them: sigma 0.15, 0.25, 0.35, 0.45 (seeds 9000 + i; nominal, "
                  "outliers, AR(1) noise)", between))

@@ -10,10 +10,11 @@ For each case of :data:`manifold_nets_examples.rigid_body.calibration.CASES` (by
 outliers, AR(1) noise, bias walk; ``--cases sensor`` the sensor errors' own readout) the zoo
 observer and the readout that scores the case (the zoo's, or ``--readouts``'; which file:
 :func:`~manifold_nets_examples.rigid_body.calibration.readout_file`) are rolled out over
-``--heldout`` fresh sequences of 1000 steps per noise level (seeds 6000 + i: neither the readout's training, validation and scale sequences,
-1000-3004, nor the paper's sets, seed 1; by default 100 at each of 26 levels 0.10, 0.12, ...,
-0.60: fitted on the paper's five levels alone it learns each level's correction and does harm
-between them, and fitted up to 0.50 alone it is pulled toward the middle at 0.5,
+``--heldout`` fresh sequences of 1000 steps per noise level (seeds 6000 + i: neither the
+readout's training, validation and scale sequences, 1000-3027, nor the paper's sets, seed 1; by
+default 100 at each of 28 levels 0.06, 0.08, ..., 0.60, the levels the zoo's readouts are fitted
+on: fitted on the paper's five levels alone it learns each level's correction and does harm
+between them, and a range that ends at 0.1 or 0.5 pulls that end toward the middle,
 ``docs/calibration.md``), and a :class:`~manifold_nets.observer.LevelScale` is
 fitted to its errors there (:func:`manifold_nets.covariance_training.fit_level_scale`: ``--knots``
 points of the readout's level averaged over ``--tau`` steps, times the readout's clock; steps
@@ -46,9 +47,10 @@ from .calibration import CASES, SKIP, _sim, _system, readout_file
 
 __all__ = ["main", "zoo_readout", "CONTINUUM"]
 
-#: The noise levels the level scales are fitted on by default: a continuum over the paper's range
-#: and beyond its top (0.10 ... 0.60), so that 0.5 is not the fitted range's edge.
-CONTINUUM = tuple(round(0.1 + 0.02 * i, 2) for i in range(26))
+#: The noise levels the level scales (and the zoo's readouts) are fitted on by default: a
+#: continuum past both ends of the paper's range (0.06 ... 0.60), so that neither 0.1 nor 0.5 is
+#: the fitted range's edge.
+CONTINUUM = tuple(round(0.06 + 0.02 * i, 2) for i in range(28))
 
 
 def zoo_readout(case: str, readouts: Path | None = None):
