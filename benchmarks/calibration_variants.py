@@ -47,21 +47,20 @@ FIVE = {
 #: that system, as the zoo's ``covariance_sensor.pt`` is): the five-level log-size readouts with
 #: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 (the zoo's)
 _RIGID = ("nominal", "outliers", "correlated", "bias_walk")
-ZOO = {
+FIVE |= {
     "log-size readouts + level scale fitted on 0.10-0.50, own sensor readout": [
         ("calibration_in_band_size_readouts_continuous", "level scale", _RIGID),
         ("calibration_in_band_sensor_readout", "level scale", ("sensor",))],
-    "log-size readouts + level scale fitted on 0.06-0.60, own sensor readout": [
-        ("calibration_in_band_size_readouts_extended", "level scale", None)],
-    "log-size readouts + level scale fitted on 0.10-0.60, own sensor readout": [
-        ("calibration_in_band_size_readouts_upper", "level scale", None)],
-    "log-size readouts fitted on 0.06-0.60": [("calibration_in_band_wide_size_readouts", "", None)],
-    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.10-0.60": [
-        ("calibration_in_band_wide_size_readouts_upper", "level scale", None)],
-    "**log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60 (the zoo's)**": [
-        ("calibration_in_band_wide_size_readouts", "level scale", None)],
+    "log-size readouts + level scale fitted on 0.06-0.60, own sensor readout": (
+        "calibration_in_band_size_readouts_extended", "level scale"),
+    "log-size readouts + level scale fitted on 0.10-0.60, own sensor readout": (
+        "calibration_in_band_size_readouts_upper", "level scale"),
+    "log-size readouts fitted on 0.06-0.60": ("calibration_in_band_wide_size_readouts", ""),
+    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.10-0.60": (
+        "calibration_in_band_wide_size_readouts_upper", "level scale"),
+    "**log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60 (the zoo's)**": (
+        "calibration_in_band_wide_size_readouts", "level scale"),
 }
-FIVE |= ZOO
 
 
 def _twin(name: str) -> str:

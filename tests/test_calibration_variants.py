@@ -40,8 +40,8 @@ def test_the_summary_counts_cells_under_each_variant_s_key(cv, tmp_path):
 
 
 def test_a_variant_joins_the_cases_it_names_from_several_files(cv, tmp_path):
-    """The zoo's rows: the rigid-body cases from one file, the sensor errors from another (their
-    own readout); a part whose file is missing drops the whole row, and the between-levels twin
+    """A row that takes the rigid-body cases from one file and the sensor errors from another
+    (their own readout); a part whose file is missing drops the whole row, and the between-levels twin
     leaves the sensor errors' part out."""
     a = {"nominal": {"R 0.1": _row(1.0, 0.95)}, "sensor": {"R 0.1": _row(1.2, 0.10)}}
     b = {"sensor": {"R 0.1": _row(1.01, 0.92)}, "nominal": {"R 0.1": _row(2.0, 0.0)}}
