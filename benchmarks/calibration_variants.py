@@ -45,7 +45,8 @@ FIVE = {
 }
 #: readouts with their level scales, the sensor errors scored by their own readout (fitted on
 #: that system, as the zoo's ``covariance_sensor.pt`` is): the five-level log-size readouts with
-#: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 (the zoo's)
+#: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 (the zoo's:
+#: 8 knots; 16 and 32 scored beside them)
 _RIGID = ("nominal", "outliers", "correlated", "bias_walk")
 FIVE |= {
     "log-size readouts + level scale fitted on 0.10-0.50, own sensor readout": [
@@ -58,6 +59,10 @@ FIVE |= {
     "log-size readouts fitted on 0.06-0.60": ("calibration_in_band_wide_size_readouts", ""),
     "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.10-0.60": (
         "calibration_in_band_wide_size_readouts_upper", "level scale"),
+    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 16 knots": (
+        "calibration_in_band_wide_size_readouts_knots16", "level scale"),
+    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 32 knots": (
+        "calibration_in_band_wide_size_readouts_knots32", "level scale"),
     "**log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60 (the zoo's)**": (
         "calibration_in_band_wide_size_readouts", "level scale"),
 }
@@ -149,7 +154,7 @@ def main(argv=None) -> None:
          "", "Fresh sequences of 1000 steps, 1000 per noise level; a cell is a case, a factor "
          "(`R`, `p`) and a noise level; `outliers p 0.5` is left out (one sequence loses its "
          "position). The nominal readout serves the sensor errors in every variant but the "
-         "last six, which score them with a readout of their own, fitted on that system as "
+         "last eight, which score them with a readout of their own, fitted on that system as "
          "the zoo's `covariance_sensor.pt` is.", ""]
         + _table("At the paper's five noise levels (seeds 8000 + i)", five)
         + _table("Between them: sigma 0.15, 0.25, 0.35, 0.45 (seeds 9000 + i; nominal, "
