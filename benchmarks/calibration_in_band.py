@@ -12,7 +12,8 @@ per noise level:
   with the level scale its file holds, as the zoo's do; with ``--level-scale``, the readout
   alone);
 * **ceiling**: the share expected if the level were exactly 1 at every step, given how much the
-  errors' NEES spreads over sequences at each step (heavy tails widen it past the chi-square's);
+  errors' NEES spreads over sequences at each step (a spread wider than the chi-square's
+  lowers it; ``calibration_spread.py`` tells what widens it);
 * **oracle level**, **oracle level x time**: the share after dividing by the set's own mean (per
   noise level), or by its own mean in six spans of steps (10-20, 20-50, 50-100, 100-200,
   200-500, 500-1000): upper bounds fitted on the scored set itself, to tell the level's share of
