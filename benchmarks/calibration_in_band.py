@@ -160,12 +160,25 @@ def _markdown(results: dict, command: str) -> str:
     return "\n".join(lines + [""])
 
 
-def main(argv=None) -> None:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def write_results(path: Path | None, results: dict, text: str) -> None:
+    """``text`` printed, and with ``results`` written to ``path``.md and ``path``.json (when given)."""
+    if path is not None:
+        path.with_suffix(".json").write_text(json.dumps(results, indent=1))
+        path.with_suffix(".md").write_text(text)
+    print(text)
+
+
+def add_set_arguments(p: argparse.ArgumentParser) -> None:
+    """The options that choose the scored sets: ``--cases``, ``--sigmas``, ``--test``, ``--seed``."""
     p.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
     p.add_argument("--sigmas", nargs="+", type=float, default=list(SIGMAS))
     p.add_argument("--test", type=int, default=1000, help="sequences per noise level scored")
     p.add_argument("--seed", type=int, default=8000, help="the scored sets' seeds: SEED + i")
+
+
+def main(argv=None) -> None:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    add_set_arguments(p)
     p.add_argument("--level-scale", type=Path, default=None,
                    help="a folder of <case>_covariance.pt with level scales to score beside")
     p.add_argument("--readouts", type=Path, default=None,
@@ -184,11 +197,7 @@ def main(argv=None) -> None:
         argv if argv is not None else sys.argv[1:])
     results = {"command": command, "seed": args.seed, "test": args.test,
                "cases": {c: _case(c, args) for c in args.cases}}
-    text = _markdown(results, command)
-    if args.write is not None:
-        args.write.with_suffix(".json").write_text(json.dumps(results, indent=1))
-        args.write.with_suffix(".md").write_text(text)
-    print(text)
+    write_results(args.write, results, _markdown(results, command))
 
 
 if __name__ == "__main__":

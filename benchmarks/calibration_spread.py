@@ -28,10 +28,10 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the scorer beside this file
-from calibration_in_band import FACTORS, _ceiling, _in_band, _read  # noqa: E402
+from calibration_in_band import FACTORS, _ceiling, _in_band, _read, add_set_arguments, write_results  # noqa: E402
 
 from manifold_nets.threads import use_threads  # noqa: E402
-from manifold_nets_examples.rigid_body.calibration import CASES, SIGMAS, SKIP  # noqa: E402
+from manifold_nets_examples.rigid_body.calibration import SKIP  # noqa: E402
 from manifold_nets_examples.rigid_body.level_scale import zoo_readout  # noqa: E402
 
 
@@ -67,10 +67,7 @@ def _markdown(results: dict) -> str:
 
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
-    p.add_argument("--sigmas", nargs="+", type=float, default=list(SIGMAS))
-    p.add_argument("--test", type=int, default=1000, help="sequences per noise level")
-    p.add_argument("--seed", type=int, default=8000, help="the sets' seeds: SEED + i")
+    add_set_arguments(p)
     p.add_argument("--cap", type=float, default=10.0, help="where q is cut for the capped columns")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--write", type=Path, default=None, help="also write PATH.md and PATH.json")
@@ -92,11 +89,7 @@ def main(argv=None) -> None:
                 print(case, f, sigma, json.dumps({k: round(v, 4) for k, v in rows[f"{f} {sigma}"].items()}),
                       flush=True)
         results["cases"][case] = rows
-    text = _markdown(results)
-    if args.write is not None:
-        args.write.with_suffix(".json").write_text(json.dumps(results, indent=1))
-        args.write.with_suffix(".md").write_text(text)
-    print(text)
+    write_results(args.write, results, _markdown(results))
 
 
 if __name__ == "__main__":
