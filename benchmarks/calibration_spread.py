@@ -6,10 +6,11 @@ sequences of each step's ``q = NEES / d``. Errors that are Gaussian under their 
 ``var q = 2 / d`` (0.667 for a 3-D factor) and a ceiling near 95 %. A larger variance comes
 either from a few huge values (an outlier the covariance did not widen for) or from the body of
 the distribution (the covariance right on average but too narrow for some sequences and too wide
-for others at the same step, or errors not Gaussian in shape). This tells the two apart: per factor and noise level, the median
-over steps of ``var q``, the same with ``q`` capped at ``--cap`` (huge values cut), the share of
-values the cap cuts, and the ceiling before and after the cap. A level scale can move neither:
-only a covariance that follows each sequence more closely can.
+for others at the same step, or errors not Gaussian in shape). This tells the two apart: per
+factor and noise level, the median over steps of ``var q``, the same with ``q`` capped at
+``--cap`` (huge values cut), the share of values the cap cuts, and the ceiling before and after
+the cap. A level scale can move neither: only a covariance that follows each sequence more
+closely can.
 
 The zoo's readouts as shipped (with their level scales), fresh sequences of 1000 steps, seeds
 SEED + i, the same as ``calibration_in_band.py``'s::
