@@ -46,8 +46,10 @@ FIVE = {
 #: readouts with their level scales, the sensor errors scored by their own readout (fitted on
 #: that system, as the zoo's ``covariance_sensor.pt`` is): the five-level log-size readouts with
 #: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 (the zoo's:
-#: 8 knots; 16 and 32 scored beside them)
+#: 8 knots; 16 and 32 scored beside them, and the zoo's with an outliers readout of more memory
+#: or more sequences)
 _RIGID = ("nominal", "outliers", "correlated", "bias_walk")
+_NOT_OUTLIERS = ("nominal", "sensor", "correlated", "bias_walk")
 FIVE |= {
     "log-size readouts + level scale fitted on 0.10-0.50, own sensor readout": [
         ("calibration_in_band_size_readouts_continuous", "level scale", _RIGID),
@@ -63,9 +65,17 @@ FIVE |= {
         "calibration_in_band_wide_size_readouts_knots16", "level scale"),
     "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 32 knots": (
         "calibration_in_band_wide_size_readouts_knots32", "level scale"),
+    "the zoo's, but the outliers readout with a GRU of 64": [
+        ("calibration_in_band_wide_size_readouts", "level scale", _NOT_OUTLIERS),
+        ("calibration_in_band_wide_size_readouts_outliers_memory64", "level scale", ("outliers",))],
+    "the zoo's, but the outliers readout fitted on three times the sequences": [
+        ("calibration_in_band_wide_size_readouts", "level scale", _NOT_OUTLIERS),
+        ("calibration_in_band_wide_size_readouts_outliers_sequences3x", "level scale", ("outliers",))],
     "**log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60 (the zoo's)**": (
         "calibration_in_band_wide_size_readouts", "level scale"),
 }
+#: the first row that scores the sensor errors with their own readout (it and every row after)
+OWN_SENSOR_FROM = "log-size readouts + level scale fitted on 0.10-0.50, own sensor readout"
 
 
 def _twin(name: str) -> str:
@@ -154,8 +164,8 @@ def main(argv=None) -> None:
          "", "Fresh sequences of 1000 steps, 1000 per noise level; a cell is a case, a factor "
          "(`R`, `p`) and a noise level; `outliers p 0.5` is left out (one sequence loses its "
          "position). The nominal readout serves the sensor errors in every variant but the "
-         "last eight, which score them with a readout of their own, fitted on that system as "
-         "the zoo's `covariance_sensor.pt` is.", ""]
+         f"last {len(FIVE) - list(FIVE).index(OWN_SENSOR_FROM)}, which score them with a "
+         "readout of their own, fitted on that system as the zoo's `covariance_sensor.pt` is.", ""]
         + _table("At the paper's five noise levels (seeds 8000 + i)", five)
         + _table("Between them: sigma 0.15, 0.25, 0.35, 0.45 (seeds 9000 + i; nominal, "
                  "outliers, AR(1) noise)", between))
