@@ -46,8 +46,8 @@ FIVE = {
 #: readouts with their level scales, the sensor errors scored by their own readout (fitted on
 #: that system, as the zoo's ``covariance_sensor.pt`` is): the five-level log-size readouts with
 #: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 (the zoo's:
-#: 8 knots; 16 and 32 scored beside them, and the zoo's with an outliers readout of more memory
-#: or more sequences)
+#: 8 knots; 16 and 32 scored beside them, level scales fitted on 400 sequences a level with 8 and
+#: 16 knots, and the zoo's with an outliers readout of more memory or more sequences)
 _RIGID = ("nominal", "outliers", "correlated", "bias_walk")
 _NOT_OUTLIERS = ("nominal", "sensor", "correlated", "bias_walk")
 FIVE |= {
@@ -65,6 +65,10 @@ FIVE |= {
         "calibration_in_band_wide_size_readouts_knots16", "level scale"),
     "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 32 knots": (
         "calibration_in_band_wide_size_readouts_knots32", "level scale"),
+    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 400 sequences a level": (
+        "calibration_in_band_wide_size_readouts_heldout400", "level scale"),
+    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 400 sequences a level, 16 knots": (
+        "calibration_in_band_wide_size_readouts_knots16_heldout400", "level scale"),
     "the zoo's, but the outliers readout with a GRU of 64": [
         ("calibration_in_band_wide_size_readouts", "level scale", _NOT_OUTLIERS),
         ("calibration_in_band_wide_size_readouts_outliers_memory64", "level scale", ("outliers",))],
