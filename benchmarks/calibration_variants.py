@@ -45,10 +45,12 @@ FIVE = {
 }
 #: readouts with their level scales, the sensor errors scored by their own readout (fitted on
 #: that system, as the zoo's ``covariance_sensor.pt`` is): the five-level log-size readouts with
-#: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 (the zoo's:
-#: 8 knots; 16 and 32 scored beside them, level scales fitted on 400 sequences a level with 8 and
-#: 16 knots, and the zoo's with an outliers readout of more memory or more sequences)
+#: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 with level
+#: scales fitted on 0.06-0.60: 100 sequences a level and 8 knots (with an outliers readout of more
+#: memory or more sequences beside them), 16 and 32 knots, 400 sequences a level with 8 knots, and
+#: 400 sequences a level with 16 knots (the zoo's)
 _RIGID = ("nominal", "outliers", "correlated", "bias_walk")
+_WIDE = "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60"
 _NOT_OUTLIERS = ("nominal", "sensor", "correlated", "bias_walk")
 FIVE |= {
     "log-size readouts + level scale fitted on 0.10-0.50, own sensor readout": [
@@ -61,22 +63,21 @@ FIVE |= {
     "log-size readouts fitted on 0.06-0.60": ("calibration_in_band_wide_size_readouts", ""),
     "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.10-0.60": (
         "calibration_in_band_wide_size_readouts_upper", "level scale"),
-    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 16 knots": (
-        "calibration_in_band_wide_size_readouts_knots16", "level scale"),
-    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 32 knots": (
-        "calibration_in_band_wide_size_readouts_knots32", "level scale"),
-    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 400 sequences a level": (
-        "calibration_in_band_wide_size_readouts_heldout400", "level scale"),
-    "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60, 400 sequences a level, 16 knots": (
-        "calibration_in_band_wide_size_readouts_knots16_heldout400", "level scale"),
-    "the zoo's, but the outliers readout with a GRU of 64": [
+    _WIDE: ("calibration_in_band_wide_size_readouts", "level scale"),
+    f"{_WIDE}, the outliers readout with a GRU of 64": [
         ("calibration_in_band_wide_size_readouts", "level scale", _NOT_OUTLIERS),
         ("calibration_in_band_wide_size_readouts_outliers_memory64", "level scale", ("outliers",))],
-    "the zoo's, but the outliers readout fitted on three times the sequences": [
+    f"{_WIDE}, the outliers readout fitted on three times the sequences": [
         ("calibration_in_band_wide_size_readouts", "level scale", _NOT_OUTLIERS),
         ("calibration_in_band_wide_size_readouts_outliers_sequences3x", "level scale", ("outliers",))],
-    "**log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60 (the zoo's)**": (
-        "calibration_in_band_wide_size_readouts", "level scale"),
+    f"{_WIDE}, 16 knots": (
+        "calibration_in_band_wide_size_readouts_knots16", "level scale"),
+    f"{_WIDE}, 32 knots": (
+        "calibration_in_band_wide_size_readouts_knots32", "level scale"),
+    f"{_WIDE}, 400 sequences a level": (
+        "calibration_in_band_wide_size_readouts_heldout400", "level scale"),
+    f"**{_WIDE}, 400 sequences a level, 16 knots (the zoo's)**": (
+        "calibration_in_band_wide_size_readouts_knots16_heldout400", "level scale"),
 }
 #: the first row that scores the sensor errors with their own readout (it and every row after)
 OWN_SENSOR_FROM = "log-size readouts + level scale fitted on 0.10-0.50, own sensor readout"

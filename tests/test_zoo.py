@@ -152,9 +152,9 @@ def test_a_run_of_an_example_system_loads_with_no_import_by_hand():
 def test_an_entry_s_covariance_loads_and_is_calibrated_on_fresh_data(case):
     """The readout of each system (docs/calibration.md: the residuals and their log size, with a
     level scale), the one the calibration commands pick for it, on 40 fresh sequences of that
-    system at sigma 0.3: its ANEES of R and p near 1 (0.92-1.12 on these 40 x 150; 0.975-1.010
-    on 100 x 1000), where a readout that did not follow the noise would be off by the noise
-    level's spread (0.1-0.5: 25x in variance)."""
+    system at sigma 0.3: its ANEES of R and p near 1 (0.91-1.14 on these 40 x 150; 0.980-1.012
+    on 100 x 1000, benchmarks/results/calibration.md), where a readout that did not follow the
+    noise would be off by the noise level's spread (0.1-0.5: 25x in variance)."""
     from manifold_nets.calibration import calibration, tangent_errors
     from manifold_nets.covariance_training import load_readout
     from manifold_nets_examples.rigid_body.calibration import CASES, _system, readout_file
