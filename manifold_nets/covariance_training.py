@@ -23,6 +23,7 @@ from .calibration import tangent_errors
 from .data import TrajectoryDataset
 from .observer import CovarianceReadout, LevelScale, ResidualObserver
 from .observer.covariance import gaussian_nll, readout_inputs
+from .observer.level_scale import hat_clock_basis
 from .progress import progress
 
 __all__ = [
@@ -270,8 +271,8 @@ def fit_level_scale(
     between two clusters of them is interpolated between fitted knots), and the weights that
     minimise the mean Gaussian negative log-likelihood of the scaled covariance over the known
     steps (every ``thin``-th), ``mean(u + q exp(-u)) + ridge |w|^2 / 2`` with ``q = NEES / d``
-    (the basis ``(steps, F, knots, 1 + len(clock))`` is held in float64: thin long sets): convex in
-    ``w``, solved by damped Newton steps. At the minimum the scaled ``NEES / d`` averages 1 on
+    (one factor's basis ``(steps, knots (1 + len(clock)))`` at a time, in float64: thin long
+    sets): convex in ``w``, solved by damped Newton steps. At the minimum the scaled ``NEES / d`` averages 1 on
     every basis function, so on the held-out steps the level is right at every averaged level
     and along the clock (from the first known step on; earlier steps take its scale)."""
     from .calibration import nees
@@ -308,9 +309,10 @@ def fit_level_scale(
                          "(scale_to_heldout).")
     first = int(k.min())
     scale = LevelScale(group, at, zeros, clock, tau, first)
-    phi = scale.basis(lbar, k)
-    weights = torch.stack([_newton_log_scale(q[:, f], phi[:, f].flatten(1), ridge)
-                           for f in range(len(names))]).reshape(zeros.shape)
+    weights = torch.stack([  # one factor's basis at a time: (steps, K (1 + len(clock))) each
+        _newton_log_scale(q[:, f], hat_clock_basis(scale.knots[f:f + 1], scale.taus, first,
+                                                   lbar[:, f:f + 1], k)[:, 0].flatten(1), ridge)
+        for f in range(len(names))]).reshape(zeros.shape)
     return LevelScale(group, scale.knots, weights, clock, tau, first)
 
 

@@ -77,6 +77,22 @@ def test_the_hats_interpolate_between_the_knots_and_hold_beyond_them():
     torch.testing.assert_close(hats[3], eye[[3, 3]])
 
 
+
+def test_one_factor_s_basis_is_its_slice_of_the_whole_bit_for_bit():
+    """The fit builds one factor's basis at a time (the whole one of millions of steps does not
+    fit in memory); it must be that factor's slice of :meth:`LevelScale.basis` exactly, so the
+    fitted weights are the same to the bit."""
+    from manifold_nets.observer.level_scale import hat_clock_basis
+
+    s = _scale(knots=5)
+    gen = torch.Generator().manual_seed(3)
+    lbar = torch.randn(300, 2, generator=gen, dtype=torch.float64) * 3
+    k = torch.randint(1, 2000, (300,), generator=gen).double()
+    whole = s.basis(lbar, k)
+    for f in range(2):
+        one = hat_clock_basis(s.knots[f:f + 1], s.taus, s.first, lbar[:, f:f + 1], k)[:, 0]
+        assert torch.equal(one, whole[:, f])
+
 def test_it_scales_each_factor_s_block_by_exp_u_and_reads_the_block_s_level():
     obs = _observer()
     r = _readout(obs)

@@ -69,7 +69,8 @@ def _held_out(observer, system, n: int, sigmas, source: str) -> list[Sequences]:
 
 def _fit_case(case: str, args, out: Path) -> dict:
     """Fit and save one case's level scale; its held-out sequences are freed on return, so a
-    process holds one case's at a time (about 18 GB at ``--heldout 400`` over 28 levels)."""
+    process holds one case's at a time (a process of ``--heldout 400`` over the 28 levels and 16
+    knots peaks at about 10 GB)."""
     cal, system = zoo_readout(case, args.readouts)
     held = _held_out(cal.observer, system, args.heldout, args.sigmas, cal.readout.source)
     scale = fit_level_scale(cal.readout, Sequences.cat(held), args.knots, args.tau,

@@ -109,16 +109,7 @@ class LevelScale(nn.Module):
     def basis(self, lbar: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         """``h_i(lbar_f) c_j(k)`` ``(..., F, K, 1 + len(clock))`` at averaged levels ``lbar``
         ``(..., F)`` and steps ``k`` (``lbar``'s leading shape)."""
-        lo, hi = self.knots[:, 0], self.knots[:, -1]
-        x = torch.minimum(torch.maximum(lbar.double(), lo), hi).unsqueeze(-1)  # (..., F, 1)
-        left, right = self.knots[:, :-1], self.knots[:, 1:]  # (F, K - 1)
-        t = ((x - left) / (right - left)).clamp(0, 1)  # how far into each span
-        # knot i's hat: rising over the span below it, falling over the span above
-        hats = torch.minimum(torch.cat([torch.ones_like(x), t], -1),
-                             torch.cat([1 - t, torch.ones_like(x)], -1))  # (..., F, K)
-        kk = k.double().clamp_min(self.first).unsqueeze(-1)
-        clock = torch.cat([torch.ones_like(kk), torch.exp(-kk / self.taus)], -1)  # (..., C + 1)
-        return hats.unsqueeze(-1) * clock.unsqueeze(-2).unsqueeze(-2)
+        return hat_clock_basis(self.knots, self.taus, self.first, lbar, k)
 
     def log_scale(self, lbar: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
         """``u`` ``(..., F)`` at averaged levels ``lbar`` ``(..., F)`` and steps ``k``."""
@@ -136,3 +127,19 @@ class LevelScale(nn.Module):
         u = self.log_scale(lbars, ks.expand(lbars.shape[:2]))
         half = torch.exp(0.5 * u)[..., self.which]  # (B, T, n): each row's factor
         return chol.double() * half.unsqueeze(-1), lbars[:, -1]
+
+
+def hat_clock_basis(knots: torch.Tensor, taus: torch.Tensor, first: int, lbar: torch.Tensor,
+                    k: torch.Tensor) -> torch.Tensor:
+    """:meth:`LevelScale.basis` of the factors whose ``knots`` ``(F, K)`` are given (a fit takes
+    one factor at a time: the basis of millions of steps is large)."""
+    lo, hi = knots[:, 0], knots[:, -1]
+    x = torch.minimum(torch.maximum(lbar.double(), lo), hi).unsqueeze(-1)  # (..., F, 1)
+    left, right = knots[:, :-1], knots[:, 1:]  # (F, K - 1)
+    t = ((x - left) / (right - left)).clamp(0, 1)  # how far into each span
+    # knot i's hat: rising over the span below it, falling over the span above
+    hats = torch.minimum(torch.cat([torch.ones_like(x), t], -1),
+                         torch.cat([1 - t, torch.ones_like(x)], -1))  # (..., F, K)
+    kk = k.double().clamp_min(first).unsqueeze(-1)
+    clock = torch.cat([torch.ones_like(kk), torch.exp(-kk / taus)], -1)  # (..., C + 1)
+    return hats.unsqueeze(-1) * clock.unsqueeze(-2).unsqueeze(-2)
