@@ -272,9 +272,10 @@ def fit_level_scale(
     minimise the mean Gaussian negative log-likelihood of the scaled covariance over the known
     steps (every ``thin``-th), ``mean(u + q exp(-u)) + ridge |w|^2 / 2`` with ``q = NEES / d``
     (one factor's basis ``(steps, knots (1 + len(clock)))`` at a time, in float64: thin long
-    sets): convex in ``w``, solved by damped Newton steps. At the minimum the scaled ``NEES / d`` averages 1 on
-    every basis function, so on the held-out steps the level is right at every averaged level
-    and along the clock (from the first known step on; earlier steps take its scale)."""
+    sets): convex in ``w``, solved by damped Newton steps. At the minimum the scaled ``NEES / d``
+    averages 1 on every basis function, so on the held-out steps the level is right at every
+    averaged level and along the clock (from the first known step on; earlier steps take its
+    scale)."""
     from .calibration import nees
 
     if isinstance(knots, bool) or not isinstance(knots, int) or knots < 2:
