@@ -28,7 +28,7 @@ from .progress import progress
 
 __all__ = [
     "Sequences", "readout_sequences", "fit_covariance", "mean_nll", "factor_nees", "scale_to_heldout",
-    "step_nees", "scale_to_share", "fit_level_scale",
+    "step_nees", "scale_to_share", "LevelSteps", "level_steps", "fit_level_scale",
 ]
 
 
@@ -258,33 +258,41 @@ def scale_to_share(readout: CovarianceReadout, heldout, sigma: float = 3.0) -> d
     return scales
 
 
+class LevelSteps(NamedTuple):
+    """Held-out steps reduced to what a level scale is fitted on: each factor's ``q = NEES / d``
+    under the readout alone and its averaged level ``lbar`` (both ``(S, F)``, float64), and the
+    step ``k`` ``(S,)``, over ``S`` known steps in sequence order; ``tau`` the steps the level is
+    averaged over. Small beside the sequences (a few numbers a step), so a fit over many held-out
+    sequences can roll them out a part at a time (:func:`level_steps` of each, then ``cat``)."""
+
+    q: torch.Tensor
+    lbar: torch.Tensor
+    k: torch.Tensor
+    tau: float
+
+    @staticmethod
+    def cat(parts: list[LevelSteps]) -> LevelSteps:
+        if not parts or len({p.tau for p in parts}) != 1:
+            raise ValueError("LevelSteps.cat: give one or more parts averaged over the same tau.")
+        return LevelSteps(*(torch.cat(t) for t in zip(*(p[:3] for p in parts))), parts[0].tau)
+
+    def nees(self, level_scale: LevelScale | None = None) -> torch.Tensor:
+        """Each factor's mean ``NEES / d`` ``(F,)`` over the steps, scaled by ``level_scale``."""
+        if level_scale is None:
+            return self.q.mean(0)
+        return (self.q * torch.exp(-level_scale.log_scale(self.lbar, self.k))).mean(0)
+
+
 @torch.no_grad()
-def fit_level_scale(
-    readout: CovarianceReadout, heldout: Sequences, knots: int = 8, tau: float = 100.0,
-    clock: tuple[float, ...] = (10.0, 50.0, 250.0, 1000.0), thin: int = 1, ridge: float = 1e-4,
-    batch_size: int = 200,
-) -> LevelScale:
-    """A :class:`~manifold_nets.observer.LevelScale` of ``readout`` fitted to ``heldout``
-    (sequences neither fitted nor used to pick the epoch or the scale; whole sequences, each
-    averaged level starting at the start's): per factor, ``knots`` points at the 0.1 ... 99.9 %
-    quantiles of the held-out averaged levels (so every hat has steps under it, and a level
-    between two clusters of them is interpolated between fitted knots), and the weights that
-    minimise the mean Gaussian negative log-likelihood of the scaled covariance over the known
-    steps (every ``thin``-th), ``mean(u + q exp(-u)) + ridge |w|^2 / 2`` with ``q = NEES / d``
-    (one factor's basis ``(steps, knots (1 + len(clock)))`` at a time, in float64: thin long
-    sets): convex in ``w``, solved by damped Newton steps. At the minimum the scaled ``NEES / d``
-    averages 1 on every basis function, so on the held-out steps the level is right at every
-    averaged level and along the clock (from the first known step on; earlier steps take its
-    scale)."""
+def level_steps(readout: CovarianceReadout, heldout: Sequences, tau: float = 100.0,
+                batch_size: int = 200) -> LevelSteps:
+    """``heldout``'s known steps as :func:`fit_level_scale` reads them (whole sequences, each
+    averaged level starting at the start's)."""
     from .calibration import nees
 
-    if isinstance(knots, bool) or not isinstance(knots, int) or knots < 2:
-        raise ValueError(f"fit_level_scale: knots must be an integer >= 2, got {knots!r}.")
-    if isinstance(thin, bool) or not isinstance(thin, int) or thin < 1:
-        raise ValueError(f"fit_level_scale: thin must be a positive integer, got {thin!r}.")
     group, names = readout.group, readout.group.factor_names
-    zeros = torch.zeros(len(names), knots, 1 + len(clock), dtype=torch.float64)
-    probe = LevelScale(group, torch.arange(float(knots)).repeat(len(names), 1), zeros, clock, tau)
+    probe = LevelScale(group, torch.arange(2.0).repeat(len(names), 1),
+                       torch.zeros(len(names), 2, 1, dtype=torch.float64), (), tau)
     qs, lbars, ks = [], [], []
     for s in range(0, len(heldout), batch_size):
         part = heldout.select(torch.arange(s, min(len(heldout), s + batch_size)))
@@ -297,7 +305,40 @@ def fit_level_scale(
         qs.append(q[part.known])
         lbars.append(lbar[part.known])
         ks.append(k[part.known])
-    q, lbar, k = (torch.cat(t)[::thin] for t in (qs, lbars, ks))
+    return LevelSteps(torch.cat(qs), torch.cat(lbars), torch.cat(ks), probe.tau)
+
+
+@torch.no_grad()
+def fit_level_scale(
+    readout: CovarianceReadout, heldout: Sequences | LevelSteps, knots: int = 8, tau: float = 100.0,
+    clock: tuple[float, ...] = (10.0, 50.0, 250.0, 1000.0), thin: int = 1, ridge: float = 1e-4,
+    batch_size: int = 200,
+) -> LevelScale:
+    """A :class:`~manifold_nets.observer.LevelScale` of ``readout`` fitted to ``heldout``
+    (sequences neither fitted nor used to pick the epoch or the scale, or their
+    :class:`LevelSteps`, averaged over ``tau``): per factor, ``knots`` points at the 0.1 ... 99.9 %
+    quantiles of the held-out averaged levels (so every hat has steps under it, and a level
+    between two clusters of them is interpolated between fitted knots), and the weights that
+    minimise the mean Gaussian negative log-likelihood of the scaled covariance over the known
+    steps (every ``thin``-th), ``mean(u + q exp(-u)) + ridge |w|^2 / 2`` with ``q = NEES / d``
+    (one factor's basis ``(steps, knots (1 + len(clock)))`` at a time, in float64: thin long
+    sets): convex in ``w``, solved by damped Newton steps. At the minimum the scaled ``NEES / d``
+    averages 1 on every basis function, so on the held-out steps the level is right at every
+    averaged level and along the clock (from the first known step on; earlier steps take its
+    scale)."""
+    if isinstance(knots, bool) or not isinstance(knots, int) or knots < 2:
+        raise ValueError(f"fit_level_scale: knots must be an integer >= 2, got {knots!r}.")
+    if isinstance(thin, bool) or not isinstance(thin, int) or thin < 1:
+        raise ValueError(f"fit_level_scale: thin must be a positive integer, got {thin!r}.")
+    group, names = readout.group, readout.group.factor_names
+    zeros = torch.zeros(len(names), knots, 1 + len(clock), dtype=torch.float64)
+    LevelScale(group, torch.arange(float(knots)).repeat(len(names), 1), zeros, clock, tau)  # checks
+    if not isinstance(heldout, LevelSteps):
+        heldout = level_steps(readout, heldout, tau, batch_size)
+    elif heldout.tau != float(tau):
+        raise ValueError(f"fit_level_scale: the steps' levels are averaged over tau={heldout.tau:g}, "
+                         f"not {float(tau):g}; reduce them again with level_steps(..., tau={tau!r}).")
+    q, lbar, k = (t[::thin] for t in heldout[:3])
     if len(q) < 10 * knots * (1 + len(clock)):
         raise ValueError(f"fit_level_scale: {len(q)} known steps are too few for {knots} knots "
                          f"and a clock of {len(clock)}; give more held-out sequences.")

@@ -14,9 +14,11 @@ from groups import SO3, Euclidean, Product
 from manifold_nets.checkpoint import CheckpointError
 from manifold_nets.cores import GRUCore
 from manifold_nets.covariance_training import (
+    LevelSteps,
     Sequences,
     factor_nees,
     fit_level_scale,
+    level_steps,
     load_readout,
     save_readout,
 )
@@ -197,6 +199,28 @@ def test_fitting_removes_a_miscalibration_that_depends_on_the_level():
     for g in (0, 1):
         after = factor_nees(r, seqs.select(torch.nonzero(which == g).squeeze(1)), level_scale=scale)
         assert after == pytest.approx({"R": 1.0, "p": 1.0}, abs=1e-6)
+
+
+def test_a_fit_over_steps_reduced_a_part_at_a_time_is_the_fit_over_the_whole_bit_for_bit():
+    """The held-out sequences rolled out and reduced part by part (parts on the batch's
+    boundaries, as the rigid-body command reduces one noise level at a time) give the same
+    steps, the same fitted weights and knots, and each part's mean NEES as the readout reads it."""
+    r, seqs, which = _two_levels(n=40, t=60)
+    whole = fit_level_scale(r, seqs, knots=3, tau=4.0, clock=(10.0,), thin=3, batch_size=10)
+    parts = [level_steps(r, seqs.select(torch.arange(a, a + 20)), 4.0, batch_size=10)
+             for a in (0, 20)]
+    steps = LevelSteps.cat(parts)
+    assert torch.equal(steps.q, level_steps(r, seqs, 4.0, batch_size=10).q)
+    streamed = fit_level_scale(r, steps, knots=3, tau=4.0, clock=(10.0,), thin=3)
+    assert torch.equal(streamed.weights, whole.weights) and torch.equal(streamed.knots, whole.knots)
+    for a, part in zip((0, 20), parts):
+        got = part.nees(whole)
+        want = factor_nees(r, seqs.select(torch.arange(a, a + 20)), level_scale=whole)
+        torch.testing.assert_close(got, torch.tensor([want["R"], want["p"]], dtype=torch.float64))
+    with pytest.raises(ValueError, match="averaged over tau=4, not 5"):
+        fit_level_scale(r, steps, knots=3, tau=5.0, clock=(10.0,))
+    with pytest.raises(ValueError, match="same tau"):
+        LevelSteps.cat([parts[0], level_steps(r, seqs, 5.0)])
 
 
 def test_a_level_scale_saves_with_its_readout_and_a_bad_one_is_refused(tmp_path):

@@ -34,9 +34,9 @@ from pathlib import Path
 
 from manifold_nets.atomic import write_text_atomic
 from manifold_nets.covariance_training import (
-    Sequences,
-    factor_nees,
+    LevelSteps,
     fit_level_scale,
+    level_steps,
     load_readout,
     readout_sequences,
     save_readout,
@@ -62,26 +62,26 @@ def zoo_readout(case: str, readouts: Path | None = None):
     return load_readout(readout_file(case, readouts), observer), system
 
 
-def _held_out(observer, system, n: int, sigmas, source: str) -> list[Sequences]:
-    return [readout_sequences(observer, _sim(system, n, 1000, s, 6000 + i), source, skip=SKIP)
+def _held_out(observer, readout, system, n: int, sigmas, tau: float) -> list[LevelSteps]:
+    """Each noise level's ``n`` held-out sequences (seeds 6000 + i), rolled out and reduced to
+    their steps one level at a time: memory grows with the steps, not with the sequences."""
+    return [level_steps(readout, readout_sequences(observer, _sim(system, n, 1000, s, 6000 + i),
+                                                   readout.source, skip=SKIP), tau)
             for i, s in enumerate(sigmas)]
 
 
 def _fit_case(case: str, args, out: Path) -> dict:
-    """Fit and save one case's level scale; its held-out sequences are freed on return, so a
-    process holds one case's at a time (a process of ``--heldout 400`` over the 28 levels and 16
-    knots peaks at about 10 GB)."""
+    """Fit and save one case's level scale."""
     cal, system = zoo_readout(case, args.readouts)
-    held = _held_out(cal.observer, system, args.heldout, args.sigmas, cal.readout.source)
-    scale = fit_level_scale(cal.readout, Sequences.cat(held), args.knots, args.tau,
+    held = _held_out(cal.observer, cal.readout, system, args.heldout, args.sigmas, args.tau)
+    scale = fit_level_scale(cal.readout, LevelSteps.cat(held), args.knots, args.tau,
                             thin=args.thin)
     save_readout(out / f"{case}_covariance.pt", cal.readout, f"zoo:{CASES[case][0]}", scale)
     rows = {}
-    for sigma, seqs in zip(args.sigmas, held):
-        before = factor_nees(cal.readout, seqs)
-        after = factor_nees(cal.readout, seqs, level_scale=scale)
-        rows[str(sigma)] = {f: {"before": round(before[f], 4), "after": round(after[f], 4)}
-                            for f in ("R", "p")}
+    for sigma, steps in zip(args.sigmas, held):
+        before, after = steps.nees(), steps.nees(scale)
+        rows[str(sigma)] = {f: {"before": round(float(before[i]), 4), "after": round(float(after[i]), 4)}
+                            for i, f in enumerate(cal.readout.group.factor_names) if f in ("R", "p")}
         print(case, sigma, json.dumps(rows[str(sigma)]), flush=True)
     return rows
 
