@@ -176,6 +176,25 @@ def add_set_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--seed", type=int, default=8000, help="the scored sets' seeds: SEED + i")
 
 
+def zoo_cells(args, measure) -> dict:
+    """``{case: {"<factor> <sigma>": measure(q)}}`` over the sets ``add_set_arguments`` chose,
+    the zoo's readouts as shipped (with their level scales), ``q`` their ``NEES / d``
+    ``(sequences, steps from SKIP)``: what ``calibration_spread.py`` and
+    ``calibration_profile.py`` tabulate."""
+    cases = {}
+    for case in args.cases:
+        cal, system = zoo_readout(case)
+        cal.eval()
+        rows = {}
+        for i, sigma in enumerate(args.sigmas):
+            r = _read(cal, None, system, args.test, sigma, args.seed + i)
+            for f in FACTORS:
+                rows[f"{f} {sigma}"] = measure(r[f][:, SKIP:])
+                print(case, f, sigma, json.dumps(rows[f"{f} {sigma}"]), flush=True)
+        cases[case] = rows
+    return cases
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     add_set_arguments(p)

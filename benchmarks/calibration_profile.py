@@ -19,18 +19,16 @@ About 1 minute a case and noise level on one thread.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the scorer beside this file
-from calibration_in_band import FACTORS, SPANS, _in_band, _read, add_set_arguments, write_results  # noqa: E402
+from calibration_in_band import SPANS, _in_band, add_set_arguments, write_results, zoo_cells  # noqa: E402
 
 from manifold_nets.threads import use_threads  # noqa: E402
 from manifold_nets_examples.rigid_body.calibration import SKIP  # noqa: E402
-from manifold_nets_examples.rigid_body.level_scale import zoo_readout  # noqa: E402
 
 
 def profile(q: np.ndarray) -> dict:
@@ -71,17 +69,8 @@ def main(argv=None) -> None:
     use_threads(args.threads)
     command = "python benchmarks/calibration_profile.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
-    results = {"command": command, "seed": args.seed, "test": args.test, "cases": {}}
-    for case in args.cases:
-        cal, system = zoo_readout(case)
-        cal.eval()
-        rows = {}
-        for i, sigma in enumerate(args.sigmas):
-            r = _read(cal, None, system, args.test, sigma, args.seed + i)
-            for f in FACTORS:
-                rows[f"{f} {sigma}"] = profile(r[f][:, SKIP:])
-                print(case, f, sigma, json.dumps(rows[f"{f} {sigma}"]), flush=True)
-        results["cases"][case] = rows
+    results = {"command": command, "seed": args.seed, "test": args.test,
+               "cases": zoo_cells(args, profile)}
     write_results(args.write, results, _markdown(results))
 
 

@@ -22,18 +22,15 @@ SEED + i, the same as ``calibration_in_band.py``'s::
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from pathlib import Path
 
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))  # the scorer beside this file
-from calibration_in_band import FACTORS, _ceiling, _in_band, _read, add_set_arguments, write_results  # noqa: E402
+from calibration_in_band import _ceiling, _in_band, add_set_arguments, write_results, zoo_cells  # noqa: E402
 
 from manifold_nets.threads import use_threads  # noqa: E402
-from manifold_nets_examples.rigid_body.calibration import SKIP  # noqa: E402
-from manifold_nets_examples.rigid_body.level_scale import zoo_readout  # noqa: E402
 
 
 def spread(q: np.ndarray, cap: float, d: int = 3) -> dict[str, float]:
@@ -78,18 +75,8 @@ def main(argv=None) -> None:
     use_threads(args.threads)
     command = "python benchmarks/calibration_spread.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
-    results = {"command": command, "seed": args.seed, "test": args.test, "cap": args.cap, "cases": {}}
-    for case in args.cases:
-        cal, system = zoo_readout(case)
-        cal.eval()
-        rows = {}
-        for i, sigma in enumerate(args.sigmas):
-            r = _read(cal, None, system, args.test, sigma, args.seed + i)
-            for f in FACTORS:
-                rows[f"{f} {sigma}"] = spread(r[f][:, SKIP:], args.cap)
-                print(case, f, sigma, json.dumps({k: round(v, 4) for k, v in rows[f"{f} {sigma}"].items()}),
-                      flush=True)
-        results["cases"][case] = rows
+    results = {"command": command, "seed": args.seed, "test": args.test, "cap": args.cap,
+               "cases": zoo_cells(args, lambda q: spread(q, args.cap))}
     write_results(args.write, results, _markdown(results))
 
 
