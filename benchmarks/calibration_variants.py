@@ -48,7 +48,8 @@ FIVE = {
 #: level scales fitted on three ranges, then the log-size readouts fitted on 0.06-0.60 with level
 #: scales fitted on 0.06-0.60: 100 sequences a level and 8 knots (with an outliers readout of more
 #: memory or more sequences beside them), 16 and 32 knots, 400 sequences a level with 8 knots, 800
-#: with 16, and 400 sequences a level with 16 knots (the zoo's)
+#: with 16, 400 with 16 and the level averaged over 25 steps, and 400 sequences a level with 16
+#: knots (the zoo's)
 _RIGID = ("nominal", "outliers", "correlated", "bias_walk")
 _WIDE = "log-size readouts fitted on 0.06-0.60 + level scale fitted on 0.06-0.60"
 _NOT_OUTLIERS = ("nominal", "sensor", "correlated", "bias_walk")
@@ -78,6 +79,8 @@ FIVE |= {
         "calibration_in_band_wide_size_readouts_heldout400", "level scale"),
     f"{_WIDE}, 800 sequences a level (every sixth step), 16 knots": (
         "calibration_in_band_wide_size_readouts_knots16_heldout800", "level scale"),
+    f"{_WIDE}, 400 sequences a level, 16 knots, the level averaged over 25 steps": (
+        "calibration_in_band_wide_size_readouts_knots16_tau25", "level scale"),
     f"**{_WIDE}, 400 sequences a level, 16 knots (the zoo's)**": (
         "calibration_in_band_wide_size_readouts_knots16_heldout400", "level scale"),
 }
