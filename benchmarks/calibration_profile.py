@@ -13,7 +13,6 @@ level), it is one its basis cannot follow even where it was fitted::
         --write benchmarks/results/calibration_profile            # the scored sets, seeds 8000 + i
     python benchmarks/calibration_profile.py --cases nominal --sigmas 0.1 --seed 6002 --test 400
 
-About 1 minute a case and noise level on one thread.
 """
 
 from __future__ import annotations
