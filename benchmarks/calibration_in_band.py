@@ -177,8 +177,8 @@ def add_set_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def zoo_cells(args, measure) -> dict:
-    """``{case: {"<factor> <sigma>": measure(q)}}`` over the sets ``add_set_arguments`` chose,
-    the zoo's readouts as shipped (with their level scales), ``q`` their ``NEES / d``
+    """``{case: {"<factor> <sigma>": measure(q, factor)}}`` over the sets ``add_set_arguments``
+    chose, the zoo's readouts as shipped (with their level scales), ``q`` their ``NEES / d``
     ``(sequences, steps from SKIP)``: what ``calibration_spread.py`` and
     ``calibration_profile.py`` tabulate."""
     cases = {}
@@ -189,7 +189,7 @@ def zoo_cells(args, measure) -> dict:
         for i, sigma in enumerate(args.sigmas):
             r = _read(cal, None, system, args.test, sigma, args.seed + i)
             for f in FACTORS:
-                rows[f"{f} {sigma}"] = measure(r[f][:, SKIP:])
+                rows[f"{f} {sigma}"] = measure(r[f][:, SKIP:], f)
                 print(case, f, sigma, json.dumps(rows[f"{f} {sigma}"]), flush=True)
         cases[case] = rows
     return cases

@@ -76,7 +76,7 @@ def main(argv=None) -> None:
     command = "python benchmarks/calibration_spread.py " + " ".join(
         argv if argv is not None else sys.argv[1:])
     results = {"command": command, "seed": args.seed, "test": args.test, "cap": args.cap,
-               "cases": zoo_cells(args, lambda q: spread(q, args.cap))}
+               "cases": zoo_cells(args, lambda q, _: spread(q, args.cap))}
     write_results(args.write, results, _markdown(results))
 
 

@@ -44,3 +44,22 @@ def test_the_command_writes_a_row_per_factor(cp, tmp_path):
     assert sorted(rows) == ["R 0.1", "p 0.1"]
     assert all(len(r["spans"]) == 6 for r in rows.values())
     assert "| nominal | p | 0.1 |" in out.with_suffix(".md").read_text()
+
+
+def test_the_pooled_row_scores_all_the_levels_sequences_together(cp, tmp_path):
+    """``--pooled``: one more row per factor over both levels' sequences; with as many of each,
+    its ANEES at every step (so over every span) is the two levels' mean, and its band is that of
+    twice the sequences."""
+    import json
+
+    out = tmp_path / "pooled"
+    cp.main(["--cases", "nominal", "--sigmas", "0.1", "0.3", "--test", "4", "--pooled",
+             "--write", str(out)])
+    rows = json.loads(out.with_suffix(".json").read_text())["cases"]["nominal"]
+    assert sorted(rows) == ["R 0.1", "R 0.3", "R pooled", "p 0.1", "p 0.3", "p pooled"]
+    for f in ("R", "p"):
+        for span, got in rows[f"{f} pooled"]["spans"].items():
+            want = (rows[f"{f} 0.1"]["spans"][span]["anees"] + rows[f"{f} 0.3"]["spans"][span]["anees"]) / 2
+            assert got["anees"] == pytest.approx(want, rel=1e-12)
+    assert "| nominal | p | pooled |" in out.with_suffix(".md").read_text()
+    assert "sigma *pooled*" in out.with_suffix(".md").read_text()
