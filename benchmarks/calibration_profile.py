@@ -7,16 +7,16 @@ their level scales). A span off alike on independent sets is a profile along the
 level scale does not follow, not a set's noise; off on the level scale's own fitting sequences
 too (``--seed 6000 + i`` for the level ``CONTINUUM[i]`` of
 ``manifold_nets_examples.rigid_body.level_scale``, ``--test 400``: the zoo's fitting set of that
-level), it is one its basis cannot follow even where it was fitted. ``--pooled`` adds a row per factor
-of the sequences of all the given levels together: over the levels the readouts were fitted on
-(``CONTINUUM``), the mixture they learnt, which a readout that cannot yet tell the levels apart
-can match while each level alone is off::
+level), it is one its basis cannot follow even where it was fitted. ``--pooled`` adds a row
+per factor of the sequences of all the given levels together: over the levels the readouts were
+fitted on (``--continuum``), the mixture they learnt, which a readout that cannot yet tell the
+levels apart can match while each level alone is off::
 
     python benchmarks/calibration_profile.py --cases nominal correlated --sigmas 0.1 \\
         --write benchmarks/results/calibration_profile            # the scored sets, seeds 8000 + i
     python benchmarks/calibration_profile.py --cases nominal --sigmas 0.1 --seed 6002 --test 400
-    python benchmarks/calibration_profile.py --cases nominal correlated --continuum --pooled \\
-        --test 200 --seed 20000 --write benchmarks/results/calibration_profile_continuum
+    python benchmarks/calibration_profile.py --cases nominal correlated outliers --continuum \\
+        --pooled --test 200 --seed 20000 --write benchmarks/results/calibration_profile_continuum
 
 """
 
