@@ -48,8 +48,7 @@ def test_the_command_writes_a_row_per_factor(cp, tmp_path):
 
 def test_the_pooled_row_scores_all_the_levels_sequences_together(cp, tmp_path):
     """``--pooled``: one more row per factor over both levels' sequences; with as many of each,
-    its ANEES at every step (so over every span) is the two levels' mean, and its band is that of
-    twice the sequences."""
+    its ANEES at every step (so over every span) is the two levels' mean."""
     import json
 
     out = tmp_path / "pooled"
